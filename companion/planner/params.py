@@ -1,0 +1,81 @@
+"""Planner parameters: the paper's H_d, D_min, phi_max, v_d and the project's additions."""
+
+from __future__ import annotations
+
+import enum
+import math
+from dataclasses import dataclass
+
+
+class ArcMethod(enum.StrEnum):
+    """How X_d is advanced along the segment, eq. (5)."""
+
+    EXACT = "exact"
+    """Exact inverse of the arc length (Gauss-Legendre table + Newton with bisection)."""
+    PAPER = "paper"
+    """The paper's fixed-increment search over delta (reference implementation)."""
+
+
+@dataclass(frozen=True, slots=True)
+class PlannerParams:
+    """Tuning of the planner. Lengths in metres, angles in radians, speeds in m/s.
+
+    h_d_m, d_min_m, phi_max_rad, v_d_mps: H_d, D_min, phi_max and v_d of the paper.
+    min_turn_radius_m: curvature bound of every reshaped path.
+    lat_accel_max_mps2: the reference speed is lowered where v^2 * curvature would exceed it.
+    accel_max_mps2: how fast the reference speed ramps up and down (also the stopping budget).
+    clearance_margin_m: extra distance kept from detected obstacle points when planning, so
+        that the true clearance stays >= D_min between sensor rays.
+    lookahead_m: how far along the path obstacle conflicts are checked.
+    memory_radius_m / memory_max_points / memory_cell_m: obstacle memory bounds.
+    arc_method / paper_delta: eq. (5) stepping method and the paper's increment.
+    goal_tolerance_m: distance of X_d to the last base point that counts as arrived.
+    """
+
+    h_d_m: float = 2.0
+    d_min_m: float = 2.0
+    phi_max_rad: float = 0.6
+    v_d_mps: float = 1.0
+    min_turn_radius_m: float = 2.0
+    lat_accel_max_mps2: float = 0.5
+    accel_max_mps2: float = 0.5
+    clearance_margin_m: float = 0.6
+    lookahead_m: float = 25.0
+    memory_radius_m: float = 40.0
+    memory_max_points: int = 4096
+    memory_cell_m: float = 0.25
+    arc_method: ArcMethod = ArcMethod.EXACT
+    paper_delta: float = 1e-4
+    goal_tolerance_m: float = 0.05
+
+    def __post_init__(self) -> None:
+        positive = (
+            "h_d_m",
+            "d_min_m",
+            "phi_max_rad",
+            "v_d_mps",
+            "min_turn_radius_m",
+            "lat_accel_max_mps2",
+            "accel_max_mps2",
+            "lookahead_m",
+            "memory_radius_m",
+            "memory_cell_m",
+            "paper_delta",
+            "goal_tolerance_m",
+        )
+        for name in positive:
+            value = getattr(self, name)
+            if not (math.isfinite(value) and value > 0.0):
+                raise ValueError(f"{name} must be a positive finite number, got {value!r}")
+        if not self.phi_max_rad < math.pi / 2:
+            raise ValueError(f"phi_max_rad must be < pi/2, got {self.phi_max_rad}")
+        if not (math.isfinite(self.clearance_margin_m) and self.clearance_margin_m >= 0.0):
+            raise ValueError(f"clearance_margin_m must be >= 0, got {self.clearance_margin_m}")
+        if self.memory_max_points < 16:
+            raise ValueError(f"memory_max_points must be >= 16, got {self.memory_max_points}")
+        object.__setattr__(self, "arc_method", ArcMethod(self.arc_method))
+
+    @property
+    def side_threshold_rad(self) -> float:
+        """Eq. (7) for the side groups: min(arctan(H_d / D_min), phi_max)."""
+        return min(math.atan2(self.h_d_m, self.d_min_m), self.phi_max_rad)

@@ -1,0 +1,116 @@
+"""Plain data passed into and out of the planner.
+
+Frames: world is local ENU (x east, y north, z up, metres); body is FLU (x forward, y left,
+z up). Yaw is measured from +x (east) counter-clockwise; pitch is nose-up positive; roll is
+right-wing-down positive. Conversions from MAVLink's NED/FRD live in `companion.planner.frames`.
+"""
+
+from __future__ import annotations
+
+import enum
+from dataclasses import dataclass, field
+
+import numpy as np
+from numpy.typing import NDArray
+
+FloatArray = NDArray[np.float64]
+
+
+class Decision(enum.StrEnum):
+    """Strategy chosen by eqs (6)-(7) for the current cycle."""
+
+    VERTICAL = "vertical"
+    """Nothing too steep: keep the horizontal path, terrain following climbs over."""
+    HORIZONTAL = "horizontal"
+    """Something steeper than its threshold: pass it in the horizontal plane."""
+    BLOCKED = "blocked"
+    """No horizontal path keeps D_min: slowing to a stop at a safe distance."""
+
+
+class PathMode(enum.StrEnum):
+    """What the horizontal path currently is."""
+
+    ROUTE = "route"
+    """Following the original route through the base points."""
+    AROUND = "around"
+    """Going around an obstacle that sits across the path."""
+    SHIFT = "shift"
+    """Shifted away from an obstacle beside the path."""
+    RETREAT = "retreat"
+    """Backing out of a dead end along the distance already covered."""
+
+
+class Side(enum.StrEnum):
+    NONE = "none"
+    LEFT = "left"
+    RIGHT = "right"
+
+
+@dataclass(frozen=True, slots=True)
+class VehicleState:
+    """Vehicle pose in the planner frames.
+
+    position_enu: (3,) metres, local ENU. Angles in radians (ENU/FLU convention above).
+    """
+
+    position_enu: FloatArray
+    roll_rad: float
+    pitch_rad: float
+    yaw_rad: float
+
+    def __post_init__(self) -> None:
+        pos = np.array(self.position_enu, dtype=np.float64).reshape(3)
+        if not np.all(np.isfinite(pos)):
+            raise ValueError(f"position_enu must be finite, got {pos}")
+        for name in ("roll_rad", "pitch_rad", "yaw_rad"):
+            if not np.isfinite(getattr(self, name)):
+                raise ValueError(f"{name} must be finite, got {getattr(self, name)}")
+        pos.setflags(write=False)
+        object.__setattr__(self, "position_enu", pos)
+
+
+@dataclass(frozen=True, slots=True)
+class Setpoint:
+    """What the vehicle is asked to do this cycle.
+
+    position_enu: X_d, metres, local ENU. velocity_enu: feed-forward velocity of X_d, m/s.
+    yaw_rad: heading of the horizontal path's tangent (ENU, from +x, CCW).
+    pitch_rad: phi_d of eq. (4), the desired pitch of the climb, radians.
+    """
+
+    position_enu: FloatArray
+    velocity_enu: FloatArray
+    yaw_rad: float
+    pitch_rad: float
+
+
+@dataclass(frozen=True, slots=True)
+class Diagnostics:
+    """Why the planner produced its setpoint.
+
+    phi_star_rad / threshold_rad: per obstacle sensor (table order), eqs (6)-(7).
+    speed_ref_mps: reference speed after curvature and stopping limits.
+    """
+
+    decision: Decision
+    mode: PathMode
+    side: Side
+    phi_star_rad: FloatArray
+    threshold_rad: FloatArray
+    phi_d_rad: float
+    segment: int
+    parameter: float
+    speed_ref_mps: float
+    min_range_m: float
+    """Smallest valid obstacle range this cycle; 0 when nothing is detected (as in Fig. 7b)."""
+    surface_valid: bool
+    replanned: bool
+    finished: bool
+    events: tuple[str, ...] = field(default_factory=tuple)
+    """Messages a pilot should know about, raised this cycle (side chosen, blocked, ...)."""
+
+
+@dataclass(frozen=True, slots=True)
+class StepResult:
+    setpoint: Setpoint
+    diagnostics: Diagnostics

@@ -1,0 +1,1 @@
+"""Worlds, vehicle models and a MAVLink vehicle simulator to fly the companion against."""
