@@ -25,12 +25,14 @@ def wrap_pi(angle_rad: float) -> float:
 
 def ned_to_enu(vector_ned: FloatArray) -> FloatArray:
     """(north, east, down) -> (east, north, up); shape (3,) or (n, 3)."""
-    return np.asarray(vector_ned, dtype=np.float64) @ _SWAP_NED_ENU.T
+    out: FloatArray = np.asarray(vector_ned, dtype=np.float64) @ _SWAP_NED_ENU.T
+    return out
 
 
 def enu_to_ned(vector_enu: FloatArray) -> FloatArray:
     """(east, north, up) -> (north, east, down); shape (3,) or (n, 3)."""
-    return np.asarray(vector_enu, dtype=np.float64) @ _SWAP_NED_ENU.T
+    out: FloatArray = np.asarray(vector_enu, dtype=np.float64) @ _SWAP_NED_ENU.T
+    return out
 
 
 def frd_to_flu(vector_frd: FloatArray) -> FloatArray:

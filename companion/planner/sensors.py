@@ -18,7 +18,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from companion.planner.frames import euler_frd_matrix, frd_to_flu, quaternion_to_matrix
-from companion.planner.types import FloatArray
+from companion.planner.types import BoolArray, FloatArray
 
 MAV_SENSOR_ROTATION_CUSTOM = 100
 
@@ -86,7 +86,12 @@ class Group(enum.StrEnum):
 
 
 OBSTACLE_GROUPS = (Group.LEFT, Group.FORWARD, Group.RIGHT)
-SURFACE_GROUPS = (Group.SURFACE_FORWARD, Group.SURFACE_BACK, Group.SURFACE_LEFT, Group.SURFACE_RIGHT)
+SURFACE_GROUPS = (
+    Group.SURFACE_FORWARD,
+    Group.SURFACE_BACK,
+    Group.SURFACE_LEFT,
+    Group.SURFACE_RIGHT,
+)
 # Eq. (6) pairing as PAPER_NOTES reads it: L with the left point, F forward, R right.
 SURFACE_FOR_GROUP = {
     Group.LEFT: Group.SURFACE_LEFT,
@@ -248,7 +253,7 @@ class SensorTable:
     def __len__(self) -> int:
         return len(self.specs)
 
-    def valid(self, ranges_m: FloatArray) -> FloatArray:
+    def valid(self, ranges_m: FloatArray) -> BoolArray:
         """Boolean mask of readings that detect something: finite, > 0, >= min and < max."""
         r = np.asarray(ranges_m, dtype=np.float64)
         with np.errstate(invalid="ignore"):

@@ -1,0 +1,272 @@
+"""Horizontal correction: reshape the Bezier path around what is too steep to climb.
+
+Design (docs/avoidance.md has the figure):
+1. Obstacle points are expressed in the route's Frenet frame: arc length s along the
+   original route and signed lateral offset l (left positive).
+2. The points that conflict with the current path are grown into a window [s_a, s_b] by
+   adding every remembered point within 2 D_m of it along the route (D_m = D_min + margin).
+3. Each point blocks the lateral band [l - D_m, l + D_m]; the gaps between the bands are the
+   lateral offsets w at which the path can pass the window. One candidate per gap: the
+   offset nearest the current offset l0 and the one nearest the route (l = 0).
+4. A candidate is a chain of cubic Beziers P0 -> V1 -> V2 -> R: P0 is the current reference
+   point with its tangent (continuity, requirement 1); V1 and V2 sit at offset w at
+   s_a - D_m and s_b + D_m, tangent parallel to the route; R rejoins the route before the
+   next base point with the route's tangent (requirement 2). V1 is dropped when the window
+   has already begun.
+5. A candidate is accepted only if its curvature stays within 1 / min_turn_radius and every
+   sample of the new curve, and of the route tail it joins, keeps D_m from every remembered
+   point (requirement 3; the whole curve is checked, not its control points).
+6. Candidates are tried cheapest first. Cost: extra length, lateral offset from the route
+   (the deviation from the goal direction), a penalty for the side with less free range, and
+   a larger one for leaving the side already chosen for this obstacle (hysteresis).
+Mode: SHIFT when the current path passes the window's points on one side (they are beside
+it, closer than D_m), AROUND when the path runs into them.
+Pure functions over numpy arrays; frame local ENU x, y metres.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from companion.planner.bezier import CubicBezier, segment_through
+from companion.planner.params import PlannerParams
+from companion.planner.path import Path, Polyline, project
+from companion.planner.route import Route
+from companion.planner.types import FloatArray, PathMode, Side
+
+SIDE_SWITCH_PENALTY_M = 50.0
+LESS_FREE_SIDE_PENALTY_M = 4.0
+MAX_LATERAL_OFFSET_M = 40.0
+_SAMPLE_SPACING_M = 0.2
+
+
+@dataclass(frozen=True, slots=True)
+class Detour:
+    """An accepted correction: the new path, where it rejoins the route, and how."""
+
+    path: Path
+    rejoin_s: float
+    offset_m: float
+    side: Side
+    mode: PathMode
+    cost: float
+
+
+def min_distance(samples_xy: FloatArray, obstacles_xy: FloatArray) -> FloatArray:
+    """Distance from each sample (n, 2) to the nearest obstacle point (k, 2); inf if none."""
+    if len(obstacles_xy) == 0:
+        return np.full(len(samples_xy), np.inf)
+    d2 = ((samples_xy[:, None, :] - obstacles_xy[None, :, :]) ** 2).sum(axis=2)
+    return np.asarray(np.sqrt(d2.min(axis=1)), dtype=np.float64)
+
+
+def sample_segments(segments: list[CubicBezier]) -> FloatArray:
+    """Points along the segments at roughly _SAMPLE_SPACING_M, (n, 2)."""
+    parts = [seg.sample(max(3, math.ceil(seg.length / _SAMPLE_SPACING_M) + 1)) for seg in segments]
+    return np.concatenate(parts) if parts else np.empty((0, 2))
+
+
+def max_abs_curvature(segments: list[CubicBezier]) -> float:
+    ts = np.linspace(0.0, 1.0, 33)
+    return max(float(np.max(np.abs(seg.curvature(ts)))) for seg in segments)
+
+
+def free_intervals(
+    lateral: FloatArray, half_width_m: float, limit_m: float = MAX_LATERAL_OFFSET_M
+) -> list[tuple[float, float]]:
+    """Gaps between the bands [l - half_width, l + half_width] within [-limit, limit]."""
+    if len(lateral) == 0:
+        return [(-limit_m, limit_m)]
+    bands = sorted(zip(lateral - half_width_m, lateral + half_width_m, strict=True))
+    gaps: list[tuple[float, float]] = []
+    cursor = -limit_m
+    for lo, hi in bands:
+        if lo > cursor:
+            gaps.append((cursor, lo))
+        cursor = max(cursor, hi)
+    if cursor < limit_m:
+        gaps.append((cursor, limit_m))
+    return [(a, b) for a, b in gaps if b - a > 1e-6]
+
+
+def _route_frame(poly: Polyline, s: float) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """Point, unit tangent and left normal of the dense route polyline at arc length s."""
+    j = int(np.clip(np.searchsorted(poly.s, s), 0, len(poly.s) - 1))
+    if j > 0 and (s - poly.s[j - 1]) < (poly.s[j] - s):
+        j -= 1
+    t = poly.tangents[j]
+    p = poly.points[j] + t * (s - poly.s[j])
+    return p, t, poly.normals[j]
+
+
+@dataclass(frozen=True, slots=True)
+class AvoidanceRequest:
+    """Everything a re-plan needs, in the world frame (x, y metres).
+
+    start_xy / start_dir: current reference point and unit tangent; start_dir None means the
+    vehicle is at rest and may leave in any direction. conflict_xy: remembered points that
+    the current path comes too close to. obstacles_xy: all remembered points nearby.
+    committed_side: side already chosen for this obstacle (hysteresis). free_left_m /
+    free_right_m: how much free range the side sensors report. avoid_side: a side that was
+    found to be a dead end.
+    """
+
+    start_xy: FloatArray
+    start_dir: FloatArray | None
+    conflict_xy: FloatArray
+    obstacles_xy: FloatArray
+    committed_side: Side = Side.NONE
+    free_left_m: float = 0.0
+    free_right_m: float = 0.0
+    avoid_side: Side = Side.NONE
+
+
+def plan_detour(route: Route, request: AvoidanceRequest, params: PlannerParams) -> Detour | None:
+    """Best feasible correction of the path (see the module docstring), or None (blocked)."""
+    d_m = params.d_min_m + params.clearance_margin_m
+    poly = route.polyline()
+    obstacles = request.obstacles_xy
+    if len(request.conflict_xy) == 0:
+        return None
+    s_obs, l_obs = project(poly, obstacles)
+    s_seed, l_seed = project(poly, request.conflict_xy)
+    s0_arr, l0_arr = project(poly, request.start_xy[None, :])
+    s0, l0 = float(s0_arr[0]), float(l0_arr[0])
+
+    s_a, s_b = float(s_seed.min()), float(s_seed.max())
+    lat_limit = float(np.max(np.abs(l_seed))) + 2.0 * d_m + 2.0
+    window = np.zeros(len(s_obs), dtype=bool)
+    for _ in range(20):
+        window = (s_obs >= s_a - 2.0 * d_m) & (s_obs <= s_b + 2.0 * d_m)
+        window &= np.abs(l_obs) <= lat_limit
+        if not window.any():
+            break
+        new_a, new_b = float(s_obs[window].min()), float(s_obs[window].max())
+        new_limit = max(lat_limit, float(np.max(np.abs(l_obs[window]))) + 2.0 * d_m)
+        if new_a == s_a and new_b == s_b and new_limit == lat_limit:
+            break
+        s_a, s_b, lat_limit = min(s_a, new_a), max(s_b, new_b), new_limit
+    l_window = l_obs[window] if window.any() else l_seed
+
+    start_clear = float(min_distance(request.start_xy[None, :], obstacles)[0])
+    required = min(d_m - 0.05, max(params.d_min_m, start_clear - 0.05))
+    seed_mid = float(np.median(l_seed))
+    path_in_span = (
+        float(l_seed.min()) - params.d_min_m <= l0 <= float(l_seed.max()) + params.d_min_m
+    )
+    mode = PathMode.AROUND if float(l_seed.min()) <= l0 <= float(l_seed.max()) else PathMode.SHIFT
+    if not path_in_span:
+        mode = PathMode.SHIFT
+
+    candidates: list[tuple[float, float, Side]] = []
+    for lo, hi in free_intervals(l_window, d_m + 0.05):
+        for target in (l0, 0.0):
+            w = min(max(target, lo + 1e-3), hi - 1e-3)
+            side = Side.LEFT if w > seed_mid else Side.RIGHT
+            cost = abs(w - l0) + 0.5 * abs(w)
+            if request.committed_side is not Side.NONE and side is not request.committed_side:
+                cost += SIDE_SWITCH_PENALTY_M
+            if side is request.avoid_side:
+                cost += 2.0 * SIDE_SWITCH_PENALTY_M
+            less_free = Side.LEFT if request.free_left_m < request.free_right_m else Side.RIGHT
+            if request.free_left_m != request.free_right_m and side is less_free:
+                cost += LESS_FREE_SIDE_PENALTY_M
+            if not any(abs(w - c[1]) < 1e-6 for c in candidates):
+                candidates.append((cost, w, side))
+    candidates.sort(key=lambda c: (c[0], c[1]))
+
+    for cost, w, side in candidates:
+        built = _build(route, poly, request, params, s0, s_a, s_b, w, d_m)
+        if built is None:
+            continue
+        detour_segments, rejoin_s, tail = built
+        if max_abs_curvature(detour_segments) > 1.0 / params.min_turn_radius_m * 1.001:
+            continue
+        samples = sample_segments(detour_segments)
+        tail_len = 0.0
+        tail_check: list[CubicBezier] = []
+        for seg in tail:
+            if tail_len > params.lookahead_m:
+                break
+            tail_check.append(seg)
+            tail_len += seg.length
+        if tail_check:
+            samples = np.concatenate([samples, sample_segments(tail_check)])
+        if float(min_distance(samples, obstacles).min()) < required:
+            continue
+        extra = sum(seg.length for seg in detour_segments) - (rejoin_s - s0)
+        return Detour(
+            path=Path([*detour_segments, *tail]),
+            rejoin_s=rejoin_s,
+            offset_m=w,
+            side=side,
+            mode=mode,
+            cost=cost + max(extra, 0.0),
+        )
+    return None
+
+
+def _build(
+    route: Route,
+    poly: Polyline,
+    request: AvoidanceRequest,
+    params: PlannerParams,
+    s0: float,
+    s_a: float,
+    s_b: float,
+    w: float,
+    d_m: float,
+) -> tuple[list[CubicBezier], float, list[CubicBezier]] | None:
+    """The Bezier chain of one candidate offset w, plus the route tail it rejoins."""
+    hold_start = s_a - d_m
+    hold_end = max(s_b + d_m, s0 + params.min_turn_radius_m)
+    ret = max(2.5 * abs(w), 2.0 * params.min_turn_radius_m, 4.0)
+    rejoin_s = hold_end + ret
+    # Rejoin no later than the next base point still ahead of the hold, and never past the end.
+    next_base = route.base_s[route.base_s > hold_end + 1e-6]
+    limit = float(next_base[0]) if len(next_base) else route.length
+    rejoin_s = min(rejoin_s, limit)
+    if rejoin_s <= hold_end + 0.5:
+        return None
+    via: list[tuple[FloatArray, FloatArray]] = []
+    if hold_start > s0 + 1.0:
+        p, t, n = _route_frame(poly, hold_start)
+        via.append((p + w * n, t))
+    p, t, n = _route_frame(poly, hold_end)
+    via.append((p + w * n, t))
+    rejoin_p, rejoin_t, _ = _route_frame(poly, rejoin_s)
+    via.append((rejoin_p, rejoin_t))
+
+    start = np.asarray(request.start_xy, dtype=np.float64)
+    first_target = via[0][0]
+    start_dir = request.start_dir
+    if start_dir is None:
+        chord = first_target - start
+        norm = float(np.hypot(chord[0], chord[1]))
+        if norm < 1e-6:
+            return None
+        start_dir = chord / norm
+    segments: list[CubicBezier] = []
+    cur, cur_dir = start, np.asarray(start_dir, dtype=np.float64)
+    for point, direction in via:
+        if float(np.hypot(*(point - cur))) < 0.3:
+            continue
+        if float(np.dot(point - cur, cur_dir)) <= 0.0:
+            return None  # the next via point is behind us: no smooth way to it
+        segments.append(segment_through(cur, cur_dir, point, direction))
+        cur, cur_dir = point, direction
+    if not segments:
+        return None
+    _, tail = route.split_at(rejoin_s)
+    # The route tail starts exactly at the rejoin point; snap the last segment's end to it.
+    if tail:
+        last = segments[-1]
+        ctrl = last.control.copy()
+        shift = tail[0].control[0] - ctrl[3]
+        ctrl[2] += shift
+        ctrl[3] = tail[0].control[0]
+        segments[-1] = CubicBezier(ctrl)
+    return segments, rejoin_s, tail

@@ -1,0 +1,149 @@
+"""A horizontal path: a chain of cubic Bezier segments addressed by arc length.
+
+Positions on the path are arc lengths s in metres from its start; `locate` turns s into
+(segment index, parameter t) with the exact arc-length inverse. Frame: local ENU x, y.
+"""
+
+from __future__ import annotations
+
+import bisect
+import itertools
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from companion.planner.bezier import CubicBezier
+from companion.planner.types import FloatArray
+
+
+@dataclass(frozen=True, slots=True)
+class Polyline:
+    """Dense samples of a path: arc length s (n,), points (n, 2), unit tangents and left
+    normals (n, 2), signed curvature (n,) in 1/m."""
+
+    s: FloatArray
+    points: FloatArray
+    tangents: FloatArray
+    normals: FloatArray
+    curvature: FloatArray
+
+
+class Path:
+    """Segments joined end to end; s = 0 at the first segment's start."""
+
+    def __init__(self, segments: Sequence[CubicBezier]) -> None:
+        if not segments:
+            raise ValueError("a path needs at least one segment")
+        for a, b in itertools.pairwise(segments):
+            gap = float(np.linalg.norm(a.control[3] - b.control[0]))
+            if gap > 1e-6:
+                raise ValueError(f"segments must join end to start (gap {gap:.3g} m)")
+        self.segments: tuple[CubicBezier, ...] = tuple(segments)
+        starts = [0.0]
+        for seg in self.segments:
+            starts.append(starts[-1] + seg.length)
+        self._starts = starts
+        self._polyline: Polyline | None = None
+
+    @property
+    def length(self) -> float:
+        """Total arc length, metres."""
+        return self._starts[-1]
+
+    def segment_start(self, index: int) -> float:
+        """Arc length at the start of segment `index`."""
+        return self._starts[index]
+
+    def locate(self, s: float) -> tuple[int, float]:
+        """(segment index, t) of arc length s, clamped to the path."""
+        if s <= 0.0:
+            return 0, 0.0
+        if s >= self.length:
+            return len(self.segments) - 1, 1.0
+        k = min(bisect.bisect_right(self._starts, s) - 1, len(self.segments) - 1)
+        return k, self.segments[k].parameter_at(s - self._starts[k])
+
+    def arc_length_at(self, index: int, t: float) -> float:
+        """Arc length of (segment index, t)."""
+        return self._starts[index] + self.segments[index].arc_length(t)
+
+    def point(self, s: float) -> FloatArray:
+        k, t = self.locate(s)
+        return self.segments[k].evaluate(t)
+
+    def tangent(self, s: float) -> FloatArray:
+        k, t = self.locate(s)
+        return self.segments[k].tangent(t)
+
+    def heading(self, s: float) -> float:
+        """Tangent heading at s, radians CCW from +x."""
+        d = self.tangent(s)
+        return math.atan2(float(d[1]), float(d[0]))
+
+    @property
+    def end(self) -> FloatArray:
+        return np.asarray(self.segments[-1].control[3], dtype=np.float64)
+
+    def polyline(self, spacing_m: float = 0.25) -> Polyline:
+        """Dense samples at roughly `spacing_m` (cached for the default spacing)."""
+        if spacing_m == 0.25 and self._polyline is not None:
+            return self._polyline
+        ss, pts, tans, curv = [], [], [], []
+        for k, seg in enumerate(self.segments):
+            n = max(2, math.ceil(seg.length / spacing_m) + 1)
+            # Uniform in arc length: invert the table at evenly spaced lengths.
+            lengths = np.linspace(0.0, seg.length, n)
+            ts = np.array([seg.parameter_at(x) for x in lengths])
+            if k > 0:
+                lengths, ts = lengths[1:], ts[1:]
+            ss.append(self._starts[k] + lengths)
+            pts.append(seg.evaluate(ts))
+            d = seg.derivative(ts, 1)
+            norm = np.hypot(d[:, 0], d[:, 1])
+            norm[norm < 1e-12] = 1.0
+            tans.append(d / norm[:, None])
+            curv.append(seg.curvature(ts))
+        tangents = np.concatenate(tans)
+        poly = Polyline(
+            s=np.concatenate(ss),
+            points=np.concatenate(pts),
+            tangents=tangents,
+            normals=np.stack([-tangents[:, 1], tangents[:, 0]], axis=1),
+            curvature=np.concatenate(curv),
+        )
+        if spacing_m == 0.25:
+            self._polyline = poly
+        return poly
+
+    def split_at(self, s: float) -> tuple[list[CubicBezier], list[CubicBezier]]:
+        """Segments before and after arc length s (de Casteljau at the cut)."""
+        k, t = self.locate(s)
+        before = list(self.segments[:k])
+        after = list(self.segments[k + 1 :])
+        seg = self.segments[k]
+        if t <= 1e-12:
+            after.insert(0, seg)
+        elif t >= 1.0 - 1e-12:
+            before.append(seg)
+        else:
+            left, right = seg.split(t)
+            before.append(left)
+            after.insert(0, right)
+        return before, after
+
+
+def project(poly: Polyline, points_xy: FloatArray) -> tuple[FloatArray, FloatArray]:
+    """Frenet coordinates of points against a dense polyline: arc length s and signed
+    lateral offset l (positive to the left), metres. points_xy: (k, 2)."""
+    q = np.asarray(points_xy, dtype=np.float64).reshape(-1, 2)
+    if len(q) == 0:
+        return np.empty(0), np.empty(0)
+    d2 = ((q[:, None, :] - poly.points[None, :, :]) ** 2).sum(axis=2)
+    j = np.argmin(d2, axis=1)
+    rel = q - poly.points[j]
+    along = np.einsum("ij,ij->i", rel, poly.tangents[j])
+    lateral = np.einsum("ij,ij->i", rel, poly.normals[j])
+    s = np.clip(poly.s[j] + along, poly.s[0], poly.s[-1])
+    return s, lateral

@@ -1,0 +1,435 @@
+"""`Planner.step`: one cycle of the spatial planner (steps 1-3 of section 3 of the paper).
+
+Every cycle:
+1. Range readings become world points, eqs (1)-(2).
+2. Terrain following: aim point X_z, eq. (3), and desired pitch phi_d, eq. (4).
+3. Steepness phi_i* and thresholds, eqs (6)-(7); steep points enter the obstacle memory.
+4. If the path ahead comes within D_min + margin/2 of a remembered point, the horizontal
+   path is reshaped (`avoidance.plan_detour`); if no reshaped path keeps D_min the planner
+   reports BLOCKED and stops short of the obstacle, then backs out along the distance it has
+   covered and tries the other way.
+5. The reference speed is limited by curvature (lateral acceleration), by the distance to
+   the first point that would come closer than D_min, and by the distance to the end of the
+   path, and ramps at accel_max; X_d advances along the path at that 3-D speed, eq. (5).
+Deterministic: same inputs, same outputs. No clocks or I/O; dt_s comes from the caller.
+"""
+
+from __future__ import annotations
+
+import math
+from collections import deque
+
+import numpy as np
+
+from companion.planner.avoidance import AvoidanceRequest, Detour, min_distance, plan_detour
+from companion.planner.decision import decide, steepness, thresholds
+from companion.planner.frames import wrap_pi
+from companion.planner.memory import ObstacleMemory
+from companion.planner.params import ArcMethod, PlannerParams
+from companion.planner.path import Path
+from companion.planner.rotations import r_g
+from companion.planner.route import Route
+from companion.planner.sensors import SURFACE_FOR_GROUP, Group, SensorTable, range_points_world
+from companion.planner.terrain import advance_exact, advance_paper, aim_point, desired_pitch
+from companion.planner.types import (
+    BoolArray,
+    Decision,
+    Diagnostics,
+    FloatArray,
+    PathMode,
+    Setpoint,
+    Side,
+    StepResult,
+    VehicleState,
+)
+
+_TRACK_SPACING_M = 0.5
+_TRACK_MAX_POINTS = 400
+_RETREAT_STEPS_M = (3.0, 6.0, 9.0, 12.0, 16.0, 20.0, 25.0, 30.0, 40.0)
+_YAW_RATE_AT_REST_RAD_S = 0.8
+_YAW_ALIGNED_RAD = 0.1
+_STOPPED_MPS = 1e-3
+
+
+class Planner:
+    """The spatial planner. Construct once per flight; call `step` every sampling period.
+
+    params: tuning. sensors: the sensor table; `step` takes ranges in its order.
+    route: the original route through the base points. start_position_enu: X_d at start
+    (x, y must be the route's first base point; z is the starting height), metres ENU.
+    """
+
+    def __init__(
+        self,
+        params: PlannerParams,
+        sensors: SensorTable,
+        route: Route,
+        start_position_enu: FloatArray,
+    ) -> None:
+        start = np.asarray(start_position_enu, dtype=np.float64).reshape(3)
+        if not np.all(np.isfinite(start)):
+            raise ValueError(f"start position must be finite, got {start}")
+        gap = float(np.hypot(*(start[:2] - route.base_points[0])))
+        if gap > 1.0:
+            raise ValueError(
+                f"start position is {gap:.1f} m from the first base point; "
+                "prepend the vehicle position to the route"
+            )
+        self.params = params
+        self.sensors = sensors
+        self.route = route
+        self._obstacle_groups = sensors.obstacle_groups
+        self._thresholds = thresholds(self._obstacle_groups, params)
+        self._memory = ObstacleMemory(
+            params.memory_cell_m, params.memory_radius_m, params.memory_max_points
+        )
+        self._path: Path = route
+        self._segment, self._t = 0, 0.0
+        self._s = 0.0
+        self._z = float(start[2])
+        self._xd_prev = np.array([*route.base_points[0], start[2]])
+        self._v = 0.0
+        self._yaw = route.start_heading_rad
+        self._h_d = params.h_d_m
+        self._cycle = 0
+        self._mode = PathMode.ROUTE
+        self._side = Side.NONE
+        self._avoid_side = Side.NONE
+        self._detour_end_s = 0.0
+        self._blocked = False
+        self._stops: list[float] = []
+        self._track: deque[tuple[float, float]] = deque(maxlen=_TRACK_MAX_POINTS)
+        self._track.append((float(start[0]), float(start[1])))
+
+    # --- public controls -------------------------------------------------------------------
+    @property
+    def desired_height_m(self) -> float:
+        return self._h_d
+
+    def set_desired_height(self, h_d_m: float) -> None:
+        """Change H_d in flight. The climb to it is limited by phi_max, so it is a ramp."""
+        if not (math.isfinite(h_d_m) and h_d_m > 0.0):
+            raise ValueError(f"H_d must be a positive number, got {h_d_m}")
+        self._h_d = float(h_d_m)
+
+    def replace_route(self, points_xy: FloatArray, arrival_heading_rad: float | None) -> None:
+        """Fly a new route from the current reference point, leaving along its current
+        tangent (no jump in heading or speed)."""
+        pts = np.asarray(points_xy, dtype=np.float64).reshape(-1, 2)
+        here = self._xd_prev[:2]
+        if len(pts) and float(np.hypot(*(pts[0] - here))) < 1e-3:
+            pts = pts[1:]
+        route = Route(np.vstack([here, pts]), self._path_heading(), arrival_heading_rad)
+        self.route = route
+        self._set_path(route, PathMode.ROUTE, Side.NONE)
+        self._detour_end_s = 0.0
+        self._blocked = False
+
+    @property
+    def path(self) -> Path:
+        """The horizontal path currently flown (the route or a corrected one)."""
+        return self._path
+
+    @property
+    def memory_points_xy(self) -> FloatArray:
+        return self._memory.points_xy().copy()
+
+    # --- the cycle -------------------------------------------------------------------------
+    def step(self, state: VehicleState, ranges_m: FloatArray, dt_s: float) -> StepResult:
+        """One planner cycle. ranges_m: (n,) metres in sensor-table order; 0, NaN, below min
+        or at/over max mean "nothing detected". dt_s: sampling period, seconds."""
+        if not (math.isfinite(dt_s) and dt_s > 0.0):
+            raise ValueError(f"dt_s must be a positive number, got {dt_s}")
+        ranges = np.asarray(ranges_m, dtype=np.float64).reshape(-1)
+        if len(ranges) != len(self.sensors):
+            raise ValueError(f"expected {len(self.sensors)} ranges, got {len(ranges)}")
+        params = self.params
+        self._cycle += 1
+        events: list[str] = []
+
+        # Eqs (1)-(2): world points of every reading.
+        rot = r_g(state.roll_rad, state.pitch_rad, state.yaw_rad)
+        valid = self.sensors.valid(ranges)
+        points = range_points_world(state.position_enu, rot, self.sensors.boresights_flu, ranges)
+        surface = {g: i for g, i in self.sensors.surface_index.items() if valid[i]}
+
+        # Eqs (3)-(4): desired pitch from the fore and aft ground points.
+        fwd, back = surface.get(Group.SURFACE_FORWARD), surface.get(Group.SURFACE_BACK)
+        surface_valid = fwd is not None and back is not None
+        phi_d = 0.0
+        if fwd is not None and back is not None:
+            try:
+                x_z = aim_point(points[fwd], points[back], state.yaw_rad, self._h_d)
+                phi_d = desired_pitch(x_z, self._xd_prev, params.phi_max_rad)
+            except ValueError:
+                surface_valid = False
+
+        # Eqs (6)-(7): steepness of each obstacle reading against its group's ground point.
+        obs = self.sensors.obstacle_index
+        detected = valid[obs]
+        ground = self._ground_points(points, surface, state)
+        phi_star = steepness(points[obs], ground, detected)
+        decision = decide(phi_star, self._thresholds)
+        steep = detected & (phi_star > self._thresholds)
+        if steep.any():
+            self._memory.add(points[obs][steep], self._cycle)
+        self._memory.forget_far(state.position_enu[:2])
+        min_range = float(ranges[obs][detected].min()) if detected.any() else 0.0
+
+        # Horizontal correction when the path ahead conflicts with remembered points.
+        replanned = self._update_path(state, ranges, valid, events)
+        if self._blocked:
+            decision = Decision.BLOCKED
+
+        # Reference speed and eq. (5).
+        v_target = self._speed_target()
+        heading = self._path_heading()
+        yaw_error = wrap_pi(heading - self._yaw)
+        if abs(yaw_error) > _YAW_ALIGNED_RAD and self._v <= _STOPPED_MPS:
+            v_target = 0.0  # turn on the spot before leaving a stop in a new direction
+        ramp = params.accel_max_mps2 * dt_s
+        self._v = min(max(v_target, self._v - 2.0 * ramp), self._v + ramp)
+        if self._v < _STOPPED_MPS and v_target <= 0.0:
+            self._v = 0.0
+        step_m = self._v * dt_s
+        if params.arc_method is ArcMethod.EXACT:
+            self._s, self._z = advance_exact(self._path, self._s, self._z, step_m, phi_d)
+            self._segment, self._t = self._path.locate(self._s)
+        elif step_m > 0.0:
+            seg, t, z, _ = advance_paper(
+                self._path, self._segment, self._t, self._z, step_m, phi_d, params.paper_delta
+            )
+            self._segment, self._t, self._z = seg, t, z
+            self._s = self._path.arc_length_at(seg, t)
+        xy = self._path.segments[self._segment].evaluate(self._t)
+        x_d = np.array([xy[0], xy[1], self._z])
+
+        heading = self._path_heading()
+        if self._v > _STOPPED_MPS:
+            self._yaw = heading
+        else:
+            turn = _YAW_RATE_AT_REST_RAD_S * dt_s
+            self._yaw = wrap_pi(self._yaw + min(max(wrap_pi(heading - self._yaw), -turn), turn))
+        tangent = np.array([math.cos(heading), math.sin(heading)])
+        velocity = self._v * np.array(
+            [tangent[0] * math.cos(phi_d), tangent[1] * math.cos(phi_d), math.sin(phi_d)]
+        )
+        self._record_track(x_d)
+        self._xd_prev = x_d
+
+        if self._mode is not PathMode.ROUTE and self._s >= self._detour_end_s:
+            if self._mode is not PathMode.RETREAT:
+                events.append("obstacle passed, back on route")
+            self._mode, self._side = PathMode.ROUTE, Side.NONE
+        finished = (
+            self._path.length - self._s <= params.goal_tolerance_m
+            and self._v <= _STOPPED_MPS
+            and self._path_ends_at_goal()
+        )
+        x_d.setflags(write=False)
+        setpoint = Setpoint(x_d, velocity, self._yaw, phi_d)
+        diagnostics = Diagnostics(
+            decision=decision,
+            mode=self._mode,
+            side=self._side,
+            phi_star_rad=phi_star,
+            threshold_rad=self._thresholds,
+            phi_d_rad=phi_d,
+            segment=self._segment,
+            parameter=self._t,
+            speed_ref_mps=self._v,
+            min_range_m=min_range,
+            surface_valid=surface_valid,
+            replanned=replanned,
+            finished=finished,
+            events=tuple(events),
+        )
+        return StepResult(setpoint, diagnostics)
+
+    # --- helpers ----------------------------------------------------------------------------
+    def _ground_points(
+        self, points: FloatArray, surface: dict[Group, int], state: VehicleState
+    ) -> FloatArray:
+        """X_hj paired with each obstacle sensor (eq. 6); when the group's surface reading is
+        missing, the forward one, else the point H_d below the vehicle."""
+        fallback_idx = surface.get(Group.SURFACE_FORWARD)
+        if fallback_idx is not None:
+            fallback = points[fallback_idx]
+        else:
+            fallback = state.position_enu - np.array([0.0, 0.0, self._h_d])
+        out = np.empty((len(self._obstacle_groups), 3))
+        for k, group in enumerate(self._obstacle_groups):
+            idx = surface.get(SURFACE_FOR_GROUP[group])
+            out[k] = points[idx] if idx is not None else fallback
+        return out
+
+    def _path_heading(self) -> float:
+        return self._path.segments[self._segment].heading(self._t)
+
+    def _path_ends_at_goal(self) -> bool:
+        return float(np.hypot(*(self._path.end - self.route.base_points[-1]))) < 1e-3
+
+    def _set_path(self, path: Path, mode: PathMode, side: Side) -> None:
+        self._path = path
+        self._s = 0.0
+        self._segment, self._t = 0, 0.0
+        self._mode, self._side = mode, side
+        self._stops = []
+
+    def _record_track(self, x_d: FloatArray) -> None:
+        last = self._track[-1]
+        if math.hypot(x_d[0] - last[0], x_d[1] - last[1]) >= _TRACK_SPACING_M:
+            self._track.append((float(x_d[0]), float(x_d[1])))
+
+    def _ahead(self) -> tuple[FloatArray, FloatArray]:
+        """Dense samples of the path from X_d to lookahead: arc lengths and points."""
+        poly = self._path.polyline()
+        sel = (poly.s >= self._s) & (poly.s <= self._s + self.params.lookahead_m)
+        return poly.s[sel], poly.points[sel]
+
+    def _update_path(
+        self, state: VehicleState, ranges: FloatArray, valid: BoolArray, events: list[str]
+    ) -> bool:
+        """Re-plan if the path ahead conflicts with the memory. Returns True if re-planned."""
+        params = self.params
+        here = self._xd_prev[:2]
+        nearby = self._memory.near(here, params.lookahead_m + 2.0 * params.d_min_m + 10.0)
+        if len(nearby) == 0:
+            self._blocked = False
+            return False
+        _s_ahead, pts_ahead = self._ahead()
+        if len(pts_ahead) == 0:
+            return False
+        dist = min_distance(pts_ahead, nearby)
+        trigger = params.d_min_m + 0.5 * params.clearance_margin_m
+        conflict_samples = dist < trigger
+        if not conflict_samples.any():
+            self._blocked = False
+            return False
+        if self._mode is PathMode.RETREAT and not self._blocked:
+            return False  # backing out along the covered track: it is known to be free
+        # Points that the conflicting part of the path comes too close to.
+        bad = pts_ahead[conflict_samples]
+        d_to_bad = np.sqrt(((nearby[:, None, :] - bad[None, :, :]) ** 2).sum(axis=2)).min(axis=1)
+        conflict_xy = nearby[d_to_bad < trigger]
+        free_left, free_right = self._free_range(ranges, valid)
+        at_rest = self._v <= _STOPPED_MPS
+        request = AvoidanceRequest(
+            start_xy=here.copy(),
+            start_dir=None if at_rest else self._path.segments[self._segment].tangent(self._t),
+            conflict_xy=conflict_xy,
+            obstacles_xy=nearby,
+            committed_side=self._side,
+            free_left_m=free_left,
+            free_right_m=free_right,
+            avoid_side=self._avoid_side,
+        )
+        detour = plan_detour(self.route, request, params)
+        if detour is not None:
+            self._accept(detour, events, stop_first=at_rest)
+            return True
+        if not self._blocked:
+            events.append("blocked: no path keeps D_min, stopping")
+        self._blocked = True
+        if at_rest:
+            return self._retreat(request, events)
+        return False
+
+    def _accept(self, detour: Detour, events: list[str], stop_first: bool) -> None:
+        if detour.side is not self._side or self._mode is PathMode.ROUTE:
+            events.append(f"avoiding obstacle on the {detour.side.value} ({detour.mode.value})")
+        if self._blocked:
+            events.append("resumed")
+        self._blocked = False
+        self._set_path(detour.path, detour.mode, detour.side)
+        if stop_first:
+            self._stops = [0.0]
+        self._detour_end_s = detour.path.length - (self.route.length - detour.rejoin_s)
+
+    def _retreat(self, request: AvoidanceRequest, events: list[str]) -> bool:
+        """At rest and blocked: back out along the covered track to the nearest point from
+        which a path on the other side exists; stop there, turn, and take it."""
+        track = np.array(self._track)[::-1]  # from here backwards
+        if len(track) < 3:
+            return False
+        seglen = np.hypot(*np.diff(track, axis=0).T)
+        along = np.concatenate([[0.0], np.cumsum(seglen)])
+        failed = self._side if self._side is not Side.NONE else Side.NONE
+        for back_m in _RETREAT_STEPS_M:
+            if back_m > along[-1]:
+                break
+            j = int(np.searchsorted(along, back_m))
+            target = track[j]
+            trial = AvoidanceRequest(
+                start_xy=target,
+                start_dir=None,
+                conflict_xy=request.conflict_xy,
+                obstacles_xy=request.obstacles_xy,
+                committed_side=Side.NONE,
+                free_left_m=request.free_left_m,
+                free_right_m=request.free_right_m,
+                avoid_side=failed,
+            )
+            detour = plan_detour(self.route, trial, self.params)
+            if detour is None:
+                continue
+            # Back along the covered track (known free), through points every ~2 m.
+            keep = track[: j + 1][:: max(1, int(2.0 / _TRACK_SPACING_M))]
+            if float(np.hypot(*(keep[-1] - target))) > 1e-6:
+                keep = np.vstack([keep, target])
+            if len(keep) < 2:
+                continue
+            back = Route(keep)
+            self._set_path(
+                Path([*back.segments, *detour.path.segments]), PathMode.RETREAT, detour.side
+            )
+            self._stops = [0.0, back.length]
+            self._avoid_side = failed
+            self._detour_end_s = back.length
+            events.append(f"dead end: backing out {back_m:.0f} m, then {detour.side.value}")
+            self._blocked = False
+            return True
+        return False
+
+    def _free_range(self, ranges: FloatArray, valid: BoolArray) -> tuple[float, float]:
+        """Sum of free range seen by the left and by the right obstacle sensors, metres."""
+        left = right = 0.0
+        for k, i in enumerate(self.sensors.obstacle_index):
+            r = float(ranges[i]) if valid[i] else float(self.sensors.max_range_m[i])
+            if self._obstacle_groups[k] is Group.LEFT:
+                left += r
+            elif self._obstacle_groups[k] is Group.RIGHT:
+                right += r
+        return left, right
+
+    def _speed_target(self) -> float:
+        """Reference speed allowed here: v_d, lowered ahead of tight curves (lateral
+        acceleration), before points closer than D_min, before stops and the path's end."""
+        params = self.params
+        a = params.accel_max_mps2
+        v = params.v_d_mps
+        s_here = self._s
+        remaining = self._path.length - s_here
+        v = min(v, math.sqrt(2.0 * a * max(remaining, 0.0)))
+        for stop in self._stops:
+            if stop > s_here + 1e-9:
+                v = min(v, math.sqrt(2.0 * a * (stop - s_here)))
+                break
+        s_ahead, pts_ahead = self._ahead()
+        if len(s_ahead) == 0:
+            return v
+        poly = self._path.polyline()
+        sel = (poly.s >= s_here) & (poly.s <= s_here + params.lookahead_m)
+        kappa = np.abs(poly.curvature[sel])
+        with np.errstate(divide="ignore"):
+            v_curve = np.sqrt(params.lat_accel_max_mps2 / np.maximum(kappa, 1e-9))
+        reach = np.sqrt(v_curve**2 + 2.0 * a * (s_ahead - s_here))
+        v = min(v, float(reach.min()))
+        nearby = self._memory.near(self._xd_prev[:2], params.lookahead_m + 10.0)
+        if len(nearby):
+            dist = min_distance(pts_ahead, nearby)
+            too_close = np.flatnonzero(dist < params.d_min_m + 0.05)
+            if len(too_close):
+                free = float(s_ahead[too_close[0]] - s_here)
+                v = min(v, math.sqrt(2.0 * a * max(free - 0.05, 0.0)))
+        return max(v, 0.0)

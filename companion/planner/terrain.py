@@ -1,0 +1,93 @@
+"""Terrain following, eqs (3)-(5): the aim point X_z, the desired pitch phi_d, and the
+motion of the reference point X_d along the horizontal path at 3-D speed v.
+
+World frame local ENU, metres; angles radians.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from companion.planner.path import Path
+from companion.planner.rotations import r_psi
+from companion.planner.types import FloatArray
+
+
+def aim_point(x_h1: FloatArray, x_h2: FloatArray, yaw_rad: float, h_d_m: float) -> FloatArray:
+    """Eq. (3): X_z = R_psi (X_h1 - X_h2)/|X_h1 - X_h2| H_d + X_h1 (world ENU, metres).
+
+    X_h1/X_h2: ground points of the forward and backward surface sensors. R_psi turns the
+    fore-aft ground direction up by pi/2; the result is normalised after rotating because
+    roll or side-slip take (X_h1 - X_h2) out of the heading's vertical plane (PAPER_NOTES).
+    """
+    g = np.asarray(x_h1, dtype=np.float64) - np.asarray(x_h2, dtype=np.float64)
+    g_norm = float(np.linalg.norm(g))
+    if g_norm < 1e-9:
+        raise ValueError("forward and backward ground points coincide")
+    up = r_psi(yaw_rad) @ (g / g_norm)
+    up_norm = float(np.linalg.norm(up))
+    if up_norm < 1e-9:
+        raise ValueError("ground direction is perpendicular to the heading")
+    return np.asarray(x_h1, dtype=np.float64) + h_d_m * up / up_norm
+
+
+def desired_pitch(x_z: FloatArray, x_d_prev: FloatArray, phi_max_rad: float) -> float:
+    """Eq. (4): phi_d = arctan((z_z - z_d(k-1)) / |[x_z, y_z] - [x_d(k-1), y_d(k-1)]|),
+    clamped to [-phi_max, +phi_max] (requirement 5). Radians."""
+    dz = float(x_z[2] - x_d_prev[2])
+    dh = math.hypot(float(x_z[0] - x_d_prev[0]), float(x_z[1] - x_d_prev[1]))
+    phi = math.atan2(dz, dh)
+    return min(max(phi, -phi_max_rad), phi_max_rad)
+
+
+def advance_exact(
+    path: Path, s: float, z: float, step_m: float, phi_d_rad: float
+) -> tuple[float, float]:
+    """Eq. (5) with the exact arc-length inverse: move X_d by a 3-D distance step_m.
+
+    The horizontal arc advances by step_m cos(phi_d) and z by tan(phi_d) times that, so the
+    3-D speed of X_d is exactly step_m / dtau. Returns the new (s, z_d); s is clamped to the
+    path's end. Locating the new s on its segment is the caller's `path.locate(s)`.
+    """
+    ds = step_m * math.cos(phi_d_rad)
+    s_new = min(s + ds, path.length)
+    ds = s_new - s
+    return s_new, z + math.tan(phi_d_rad) * ds
+
+
+def advance_paper(
+    path: Path, segment: int, t: float, z: float, step_m: float, phi_d_rad: float, delta: float
+) -> tuple[int, float, float, int]:
+    """Eq. (5) with the paper's fixed-increment search (reference implementation).
+
+    Steps the parameter by `delta` until the accumulated 3-D chord length reaches step_m
+    (Steps 1-3 of section 3); overshoots by up to |B'| delta. Crosses into the next segment
+    when the current one ends. Returns (segment, t, z_d, iterations).
+    """
+    tan_phi = math.tan(phi_d_rad)
+    seg = path.segments[segment]
+    prev = seg.evaluate(t)
+    travelled = 0.0
+    horizontal = 0.0
+    iterations = 0
+    while travelled < step_m:
+        iterations += 1
+        t += delta
+        if t >= 1.0:
+            if segment + 1 < len(path.segments):
+                segment += 1
+                seg = path.segments[segment]
+                t -= 1.0
+            else:
+                t = 1.0
+        point = seg.evaluate(t)
+        sx = math.hypot(float(point[0] - prev[0]), float(point[1] - prev[1]))
+        sz = tan_phi * sx
+        travelled += math.hypot(sx, sz)
+        horizontal += sx
+        prev = point
+        if t >= 1.0 and segment == len(path.segments) - 1:
+            break
+    return segment, t, z + tan_phi * horizontal, iterations
