@@ -16,11 +16,15 @@ Design (docs/avoidance.md has the figure):
 5. A candidate is accepted only if its curvature stays within 1 / min_turn_radius and every
    sample of the new curve, and of the route tail it joins, keeps D_m from every remembered
    point (requirement 3; the whole curve is checked, not its control points).
+   Around an obstacle that sits across the path, each offset is also offered with an extra
+   berth (UNSEEN_BERTH_M), preferred when it fits: the far side has not been seen yet.
 6. Candidates are tried cheapest first. Cost: extra length, lateral offset from the route
    (the deviation from the goal direction), a penalty for the side with less free range, and
    a larger one for leaving the side already chosen for this obstacle (hysteresis).
-Mode: SHIFT when the current path passes the window's points on one side (they are beside
-it, closer than D_m), AROUND when the path runs into them.
+   When the window has already begun (the obstacle is beside the vehicle), V1 is placed a
+   few lateral-change lengths ahead instead, so the path moves out promptly.
+Mode: AROUND when the obstacle sits across the current line (a conflicting point within
+ACROSS_M of it), SHIFT when it is beside the line, closer than D_m.
 Pure functions over numpy arrays; frame local ENU x, y metres.
 """
 
@@ -40,6 +44,14 @@ from companion.planner.types import FloatArray, PathMode, Side
 SIDE_SWITCH_PENALTY_M = 50.0
 LESS_FREE_SIDE_PENALTY_M = 4.0
 MAX_LATERAL_OFFSET_M = 40.0
+ACROSS_M = 0.5
+UNSEEN_BERTH_M = 2.0
+"""Extra lateral room taken around an obstacle that sits across the path (its far side
+has not been seen yet); dropped when it does not fit."""
+"""An obstacle point this close to the current line means the obstacle sits across it."""
+TRANSITION_FACTORS = (1.0, 1.5, 2.5, 4.0)
+"""Lengths, in multiples of the shortest S-curve the turn radius allows, over which a
+candidate moves to its offset."""
 _SAMPLE_SPACING_M = 0.2
 
 
@@ -154,19 +166,23 @@ def plan_detour(route: Route, request: AvoidanceRequest, params: PlannerParams) 
     start_clear = float(min_distance(request.start_xy[None, :], obstacles)[0])
     required = min(d_m - 0.05, max(params.d_min_m, start_clear - 0.05))
     seed_mid = float(np.median(l_seed))
-    path_in_span = (
-        float(l_seed.min()) - params.d_min_m <= l0 <= float(l_seed.max()) + params.d_min_m
-    )
-    mode = PathMode.AROUND if float(l_seed.min()) <= l0 <= float(l_seed.max()) else PathMode.SHIFT
-    if not path_in_span:
-        mode = PathMode.SHIFT
+    across = float(np.min(np.abs(l_seed - l0))) < ACROSS_M
+    mode = PathMode.AROUND if across else PathMode.SHIFT
 
     candidates: list[tuple[float, float, Side]] = []
     for lo, hi in free_intervals(l_window, d_m + 0.05):
+        offsets: list[tuple[float, float]] = []  # (w, cost adjustment)
         for target in (l0, 0.0):
             w = min(max(target, lo + 1e-3), hi - 1e-3)
+            offsets.append((w, 0.0))
+            if mode is PathMode.AROUND:
+                # Seen from the front, an obstacle's far extent is unknown: prefer a berth.
+                berth = w + UNSEEN_BERTH_M if w <= lo + 1e-2 else w - UNSEEN_BERTH_M
+                if lo < berth < hi and (w <= lo + 1e-2 or w >= hi - 1e-2):
+                    offsets.append((berth, -1.6 * UNSEEN_BERTH_M - 0.1))
+        for w, adjust in offsets:
             side = Side.LEFT if w > seed_mid else Side.RIGHT
-            cost = abs(w - l0) + 0.5 * abs(w)
+            cost = abs(w - l0) + 0.5 * abs(w) + adjust
             if request.committed_side is not Side.NONE and side is not request.committed_side:
                 cost += SIDE_SWITCH_PENALTY_M
             if side is request.avoid_side:
@@ -178,8 +194,8 @@ def plan_detour(route: Route, request: AvoidanceRequest, params: PlannerParams) 
                 candidates.append((cost, w, side))
     candidates.sort(key=lambda c: (c[0], c[1]))
 
-    for cost, w, side in candidates:
-        built = _build(route, poly, request, params, s0, s_a, s_b, w, d_m)
+    for cost, w, side, transition in _with_transitions(candidates, l0, s0, s_a, d_m, params):
+        built = _build(route, poly, request, params, s0, transition, s_b, w, d_m)
         if built is None:
             continue
         detour_segments, rejoin_s, tail = built
@@ -209,20 +225,47 @@ def plan_detour(route: Route, request: AvoidanceRequest, params: PlannerParams) 
     return None
 
 
+def _with_transitions(
+    candidates: list[tuple[float, float, Side]],
+    l0: float,
+    s0: float,
+    s_a: float,
+    d_m: float,
+    params: PlannerParams,
+) -> list[tuple[float, float, Side, float]]:
+    """Each candidate offset with the route positions at which it may reach that offset:
+    the window's start (s_a - D_m) when that is ahead, else a few lengths ahead of here.
+    Later transitions cost a little more (they stay longer on the old line)."""
+    out = []
+    for cost, w, side in candidates:
+        # A cubic S-curve shifting sideways by c over a length L curves at about 6 c / L^2.
+        shortest = max(1.0, 1.1 * math.sqrt(6.0 * abs(w - l0) * params.min_turn_radius_m))
+        hold_start = s_a - d_m
+        if hold_start > s0 + shortest:
+            out.append((cost, w, side, hold_start))
+        for i, factor in enumerate(TRANSITION_FACTORS):
+            at = s0 + factor * shortest
+            if at < hold_start:
+                continue
+            out.append((cost + 0.1 * i, w, side, at))
+    out.sort(key=lambda c: (c[0], c[1]))
+    return out
+
+
 def _build(
     route: Route,
     poly: Polyline,
     request: AvoidanceRequest,
     params: PlannerParams,
     s0: float,
-    s_a: float,
+    hold_start: float,
     s_b: float,
     w: float,
     d_m: float,
 ) -> tuple[list[CubicBezier], float, list[CubicBezier]] | None:
-    """The Bezier chain of one candidate offset w, plus the route tail it rejoins."""
-    hold_start = s_a - d_m
-    hold_end = max(s_b + d_m, s0 + params.min_turn_radius_m)
+    """The Bezier chain of one candidate: reach offset w at route position hold_start, hold
+    it to s_b + D_m, then rejoin the route; plus the route tail it rejoins."""
+    hold_end = max(s_b + d_m, hold_start + params.min_turn_radius_m)
     ret = max(2.5 * abs(w), 2.0 * params.min_turn_radius_m, 4.0)
     rejoin_s = hold_end + ret
     # Rejoin no later than the next base point still ahead of the hold, and never past the end.
@@ -232,7 +275,7 @@ def _build(
     if rejoin_s <= hold_end + 0.5:
         return None
     via: list[tuple[FloatArray, FloatArray]] = []
-    if hold_start > s0 + 1.0:
+    if hold_start > s0 + 0.5:
         p, t, n = _route_frame(poly, hold_start)
         via.append((p + w * n, t))
     p, t, n = _route_frame(poly, hold_end)

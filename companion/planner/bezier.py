@@ -2,12 +2,14 @@
 
 A segment is four control points (W1, P1, P2, W2) as rows of a (4, 2) array, local ENU
 x, y in metres. The parameter t (the paper's delta) runs over [0, 1]. Arc length uses
-Gauss-Legendre quadrature on a table of sub-intervals; its inverse uses Newton's method
+8-point Gauss-Legendre quadrature on a table of sub-intervals (16, halved adaptively where
+the quadrature has not converged, as next to a cusp); its inverse uses Newton's method
 safeguarded by bisection, so a given arc length maps back to t to ~1e-12 m.
 """
 
 from __future__ import annotations
 
+import bisect
 import math
 from dataclasses import dataclass, field
 
@@ -19,6 +21,7 @@ _GL_NODES, _GL_WEIGHTS = np.polynomial.legendre.leggauss(8)
 _GL_X = tuple(float(x) for x in _GL_NODES)
 _GL_W = tuple(float(w) for w in _GL_WEIGHTS)
 _TABLE_INTERVALS = 16
+_TABLE_MAX_DEPTH = 16
 
 
 def _bernstein(t: FloatArray) -> FloatArray:
@@ -35,6 +38,7 @@ class CubicBezier:
     """
 
     control: FloatArray
+    _knots: tuple[float, ...] = field(init=False, repr=False, compare=False)
     _lengths: tuple[float, ...] = field(init=False, repr=False, compare=False)
     _d: tuple[float, ...] = field(init=False, repr=False, compare=False)
 
@@ -47,11 +51,25 @@ class CubicBezier:
         # Scalar copies of the hodograph's control points for the hot path (pure-float maths).
         d = 3.0 * np.diff(c, axis=0)
         object.__setattr__(self, "_d", tuple(map(float, d.ravel())))
+        knots = [0.0]
         cum = [0.0]
         for k in range(_TABLE_INTERVALS):
-            a, b = k / _TABLE_INTERVALS, (k + 1) / _TABLE_INTERVALS
-            cum.append(cum[-1] + self._gauss_legendre(a, b))
+            self._refine(k / _TABLE_INTERVALS, (k + 1) / _TABLE_INTERVALS, 0, knots, cum)
+        object.__setattr__(self, "_knots", tuple(knots))
         object.__setattr__(self, "_lengths", tuple(cum))
+
+    def _refine(self, a: float, b: float, depth: int, knots: list[float], cum: list[float]) -> None:
+        """Append table intervals covering [a, b], halving where the quadrature has not
+        converged (near a cusp, where |B'| has a kink)."""
+        whole = self._gauss_legendre(a, b)
+        m = 0.5 * (a + b)
+        halves = self._gauss_legendre(a, m) + self._gauss_legendre(m, b)
+        if abs(whole - halves) > 1e-13 * (1.0 + whole) and depth < _TABLE_MAX_DEPTH:
+            self._refine(a, m, depth + 1, knots, cum)
+            self._refine(m, b, depth + 1, knots, cum)
+            return
+        knots.append(b)
+        cum.append(cum[-1] + halves)
 
     # --- evaluation -------------------------------------------------------------------
     def evaluate(self, t: float | FloatArray) -> FloatArray:
@@ -141,8 +159,8 @@ class CubicBezier:
     def arc_length(self, t: float) -> float:
         """Arc length from t = 0 to t, metres."""
         t = min(max(t, 0.0), 1.0)
-        k = min(int(t * _TABLE_INTERVALS), _TABLE_INTERVALS - 1)
-        return self._lengths[k] + self._gauss_legendre(k / _TABLE_INTERVALS, t)
+        k = min(bisect.bisect_right(self._knots, t) - 1, len(self._knots) - 2)
+        return self._lengths[k] + self._gauss_legendre(self._knots[k], t)
 
     def parameter_at(self, s: float, tol_m: float = 1e-12) -> float:
         """The t in [0, 1] at which the arc length from 0 equals s (clamped to the segment).
@@ -155,15 +173,14 @@ class CubicBezier:
             return 0.0
         if s >= lengths[-1]:
             return 1.0
-        # Locate the bracketing table interval (16 entries: a linear scan is cheapest).
-        k = 0
-        while lengths[k + 1] < s:
-            k += 1
-        lo, hi = k / _TABLE_INTERVALS, (k + 1) / _TABLE_INTERVALS
+        k = min(bisect.bisect_left(lengths, s) - 1, len(lengths) - 2)
+        k = max(k, 0)
+        knots = self._knots
+        lo, hi = knots[k], knots[k + 1]
         span = lengths[k + 1] - lengths[k]
         t = lo + (hi - lo) * ((s - lengths[k]) / span if span > 0.0 else 0.5)
         for _ in range(50):
-            f = lengths[k] + self._gauss_legendre(k / _TABLE_INTERVALS, t) - s
+            f = lengths[k] + self._gauss_legendre(knots[k], t) - s
             if abs(f) <= tol_m:
                 return t
             if f > 0.0:

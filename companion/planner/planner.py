@@ -192,6 +192,11 @@ class Planner:
         if self._v < _STOPPED_MPS and v_target <= 0.0:
             self._v = 0.0
         step_m = self._v * dt_s
+        for stop in self._stops:
+            if stop > self._s + 1e-9:
+                # Land exactly on a stop (a cusp or the end of a retreat), never across it.
+                step_m = min(step_m, (stop - self._s) / max(math.cos(phi_d), 1e-6))
+                break
         if params.arc_method is ArcMethod.EXACT:
             self._s, self._z = advance_exact(self._path, self._s, self._z, step_m, phi_d)
             self._segment, self._t = self._path.locate(self._s)
@@ -349,7 +354,8 @@ class Planner:
     def _retreat(self, request: AvoidanceRequest, events: list[str]) -> bool:
         """At rest and blocked: back out along the covered track to the nearest point from
         which a path on the other side exists; stop there, turn, and take it."""
-        track = np.array(self._track)[::-1]  # from here backwards
+        # From here backwards along the covered track.
+        track = np.vstack([self._xd_prev[:2], np.array(self._track)[::-1]])
         if len(track) < 3:
             return False
         seglen = np.hypot(*np.diff(track, axis=0).T)
@@ -428,7 +434,13 @@ class Planner:
         nearby = self._memory.near(self._xd_prev[:2], params.lookahead_m + 10.0)
         if len(nearby):
             dist = min_distance(pts_ahead, nearby)
-            too_close = np.flatnonzero(dist < params.d_min_m + 0.05)
+            # Stop before the first place closer than the trigger distance. An accepted
+            # correction may start inside that band (new points appeared) while leading out
+            # of it; then only places closer than here count, and never closer than D_min.
+            limit = params.d_min_m + 0.5 * params.clearance_margin_m
+            if not self._blocked:
+                limit = max(min(limit, float(dist[0]) - 0.05), params.d_min_m)
+            too_close = np.flatnonzero(dist < limit)
             if len(too_close):
                 free = float(s_ahead[too_close[0]] - s_here)
                 v = min(v, math.sqrt(2.0 * a * max(free - 0.05, 0.0)))
