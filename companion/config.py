@@ -1,0 +1,437 @@
+"""The service's YAML configuration: schema, loading and `check-config`.
+
+One file holds everything a user tunes. Sections:
+
+    link:      connection string (pymavlink form)
+    identity:  our system/component id
+    autopilot: which autopilot, timeouts, message rates, setpoint frame
+    control:   loop rate, time source (monotonic or simulator), auto start, engagement
+    route:     base points (local ENU metres from home, or lat/lon) or the autopilot's mission
+    planner:   companion.tuning.PlannerConfig (shared with the simulator's scenarios)
+    sensors:   list of companion.tuning.SensorConfig (shared with the scenarios)
+    failsafe:  maximum ages of position, attitude and range readings; hold/resume behaviour
+    signing:   MAVLink 2 signing key file and timestamp state file
+    logging:   log level, flight log directory and rotation
+    statustext: rate limits of the messages to the pilot
+
+Relative paths (key file, state file, flight log directory) are relative to the config file's
+directory. Every key has a default in the schema except `sensors`; `config/default.yaml`
+spells all of them out. Validation errors name the key path, what was expected and what was
+found, e.g. ``planner.h_d_m: expected a number greater than 0, found -1``.
+"""
+
+from __future__ import annotations
+
+import math
+import sys
+from pathlib import Path
+from typing import Annotated, Any, Literal, TextIO
+
+import yaml
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+
+from companion.planner.sensors import SensorTable
+from companion.service.link import LinkSpec, parse_connection
+from companion.tuning import PlannerConfig, SensorConfig, sensor_table
+
+Finite = Annotated[float, Field(allow_inf_nan=False)]
+Positive = Annotated[float, Field(gt=0, allow_inf_nan=False)]
+NonNegative = Annotated[float, Field(ge=0, allow_inf_nan=False)]
+SystemId = Annotated[int, Field(ge=1, le=254)]
+ComponentId = Annotated[int, Field(ge=1, le=255)]
+RateHz = Annotated[float, Field(gt=0, le=400, allow_inf_nan=False)]
+
+
+class Section(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+
+class LinkConfig(Section):
+    """`link:` where the autopilot is."""
+
+    connection: str = "udpin:0.0.0.0:14550"
+
+    @field_validator("connection")
+    @classmethod
+    def _parse(cls, v: str) -> str:
+        parse_connection(v)
+        return v
+
+    @property
+    def spec(self) -> LinkSpec:
+        return parse_connection(self.connection)
+
+
+class IdentityConfig(Section):
+    """`identity:` how the service appears on the MAVLink network.
+
+    system_id: "auto" takes the autopilot's (a companion belongs to its vehicle); never 255,
+    which is the ground station's and would mask its failsafe.
+    """
+
+    system_id: SystemId | Literal["auto"] = "auto"
+    component_id: ComponentId = 191
+    heartbeat_hz: Annotated[float, Field(ge=0.2, le=10)] = 1.0
+
+
+StreamName = Literal["ATTITUDE", "GLOBAL_POSITION_INT", "DISTANCE_SENSOR", "HOME_POSITION"]
+
+
+class StreamsConfig(Section):
+    """`autopilot.streams_hz:` rates requested with MAV_CMD_SET_MESSAGE_INTERVAL."""
+
+    ATTITUDE: RateHz = 20.0
+    GLOBAL_POSITION_INT: RateHz = 20.0
+    DISTANCE_SENSOR: RateHz = 20.0
+    HOME_POSITION: RateHz = 0.5
+
+
+class AutopilotConfig(Section):
+    """`autopilot:` which autopilot to fly and how to talk to it.
+
+    type: "auto" detects ArduPilot or PX4 from the heartbeat.
+    setpoint_frame: "auto" = relative altitude (6) on ArduPilot, global AMSL (5) on PX4,
+        whose frame 6 applies the home/origin altitude difference with the wrong sign.
+        Terrain frames are not offered: ArduCopter rejects them with velocity.
+    """
+
+    type: Literal["auto", "ardupilot", "px4"] = "auto"
+    system_id: SystemId | Literal["auto"] = "auto"
+    component_id: ComponentId = 1
+    heartbeat_timeout_s: Annotated[float, Field(gt=0, le=60)] = 3.0
+    command_timeout_s: Annotated[float, Field(gt=0, le=30)] = 1.0
+    command_retries: Annotated[int, Field(ge=0, le=10)] = 3
+    streams_hz: StreamsConfig = StreamsConfig()
+    setpoint_frame: Literal["auto", "global_relative_alt", "global"] = "auto"
+
+
+class AutoStartConfig(Section):
+    """`control.auto_start:` arm, take off and switch mode without a pilot (SITL, demos).
+
+    takeoff_alt_m: above home; default the planner's H_d.
+    arm_timeout_s: keep retrying the arm command this long (SITL needs ~45 s to be armable).
+    """
+
+    enabled: bool = False
+    takeoff_alt_m: Positive | None = None
+    arm_timeout_s: Annotated[float, Field(gt=0, le=600)] = 120.0
+    takeoff_timeout_s: Annotated[float, Field(gt=0, le=600)] = 60.0
+    prestream_s: Annotated[float, Field(ge=0.1, le=10)] = 1.0
+    """PX4: how long setpoints stream before OFFBOARD is requested."""
+
+
+class ControlConfig(Section):
+    """`control:` the loop.
+
+    time_source: "monotonic" runs at rate_hz on the computer's monotonic clock; "sim" runs a
+        cycle when the simulator's TIMESYNC lockstep tick says one is due in simulated time.
+    min_engage_height_m: the vehicle must be this far above home (relative altitude) before
+        the service takes over (ArduCopter ignores GUIDED targets on the ground).
+    reengage: when the pilot puts the vehicle back in GUIDED/OFFBOARD after taking it away,
+        fly on (from the current position, with the base points not yet passed).
+    restart_distance_m: on resuming, a planner whose X_d is farther than this from the
+        vehicle restarts from the vehicle's position instead of pulling it back.
+    on_finish: what to do at the last base point: hold there, or ask the autopilot to land or
+        return (the only mode changes the service makes besides auto start).
+    """
+
+    rate_hz: Annotated[float, Field(ge=1, le=100)] = 20.0
+    time_source: Literal["monotonic", "sim"] = "monotonic"
+    auto_start: AutoStartConfig = AutoStartConfig()
+    min_engage_height_m: NonNegative = 1.0
+    reengage: bool = True
+    restart_distance_m: Positive = 3.0
+    on_finish: Literal["hold", "land", "rtl"] = "hold"
+
+
+class RouteSection(Section):
+    """`route:` where to fly.
+
+    source: "config" flies `points` (local ENU x east, y north, metres from the home
+        position) or `points_latlon` ([lat, lon] degrees); "mission" downloads the
+        autopilot's mission and flies its waypoints (ArduPilot's item 0 is home and skipped).
+    The vehicle's position when the service takes over is prepended as the first base point,
+    with the vehicle's heading as the start heading.
+    arrival_heading_deg: ENU degrees (counter-clockwise from east), optional.
+    """
+
+    source: Literal["config", "mission"] = "config"
+    points: list[tuple[Finite, Finite]] | None = None
+    points_latlon: (
+        list[
+            tuple[
+                Annotated[float, Field(ge=-90, le=90, allow_inf_nan=False)],
+                Annotated[float, Field(ge=-180, le=180, allow_inf_nan=False)],
+            ]
+        ]
+        | None
+    ) = None
+    arrival_heading_deg: Finite | None = None
+
+    @model_validator(mode="after")
+    def _points_for_source(self) -> RouteSection:
+        given = (self.points is not None) + (self.points_latlon is not None)
+        if self.source == "config":
+            if given != 1:
+                raise ValueError("source 'config' needs exactly one of points, points_latlon")
+            pts = self.points if self.points is not None else self.points_latlon
+            assert pts is not None
+            if not pts:
+                raise ValueError("route needs at least one base point")
+        elif given:
+            raise ValueError("source 'mission' takes its points from the autopilot; remove points")
+        return self
+
+
+class FailsafeConfig(Section):
+    """`failsafe:` when inputs are too old.
+
+    A range reading older than sensor_max_age_s (or an attitude older than its age) makes
+    the service hold at the current position and say why; a position older than
+    position_max_age_s stops commanding altogether (the autopilot keeps its last target).
+    optional_sensor_ids: sensors whose absence is passed to the planner as "no reading"
+    instead of causing a hold.
+    resume_after_s: inputs must be good this long before a hold ends.
+    max_speed_mps: a position implying a faster jump is rejected as a glitch (accepted
+    after jump_accept_s if it persists, e.g. an EKF reset).
+    """
+
+    position_max_age_s: Positive = 0.5
+    attitude_max_age_s: Positive = 0.5
+    sensor_max_age_s: Positive = 0.5
+    optional_sensor_ids: list[Annotated[int, Field(ge=0, le=255)]] = []
+    resume_after_s: NonNegative = 1.0
+    max_speed_mps: Positive = 40.0
+    jump_accept_s: Positive = 1.0
+
+
+class SigningConfig(Section):
+    """`signing:` MAVLink 2 signing.
+
+    key_file: 64 hex characters or 32 raw bytes. state_file: where the signing timestamp is
+    kept across restarts. allow_unsigned: message names still accepted unsigned (default none:
+    every unsigned or badly signed message is rejected and counted).
+    """
+
+    enabled: bool = False
+    key_file: Path | None = None
+    state_file: Path | None = None
+    link_id: Annotated[int, Field(ge=0, le=255)] = 0
+    allow_unsigned: list[str] = []
+
+    @model_validator(mode="after")
+    def _key_when_enabled(self) -> SigningConfig:
+        if self.enabled and self.key_file is None:
+            raise ValueError("signing is enabled: key_file is required")
+        return self
+
+    @field_validator("allow_unsigned")
+    @classmethod
+    def _known_messages(cls, v: list[str]) -> list[str]:
+        from companion.service.codec import mavlink2
+
+        for name in v:
+            if not hasattr(mavlink2, f"MAVLINK_MSG_ID_{name}"):
+                raise ValueError(f"unknown MAVLink message name {name!r}")
+        return v
+
+
+class LoggingConfig(Section):
+    """`logging:` the text log (stderr, journald under systemd) and the flight log.
+
+    flight_log_dir: one JSON line per cycle (inputs, decision, setpoint) in
+    flight-YYYYmmdd-HHMMSS.jsonl files, rotated at max_file_mb, at most keep_files kept.
+    Empty (null) disables the flight log.
+    """
+
+    level: Literal["debug", "info", "warning", "error"] = "info"
+    flight_log_dir: Path | None = None
+    max_file_mb: Annotated[float, Field(gt=0, le=10_000)] = 50.0
+    keep_files: Annotated[int, Field(ge=1, le=10_000)] = 20
+
+
+class StatustextConfig(Section):
+    """`statustext:` messages to the pilot: a token bucket plus a repeat filter."""
+
+    max_per_s: Annotated[float, Field(gt=0, le=50)] = 2.0
+    burst: Annotated[int, Field(ge=1, le=100)] = 5
+    repeat_interval_s: NonNegative = 5.0
+
+
+class ServiceConfig(Section):
+    """The whole file. `base_dir` (not a YAML key) resolves relative paths."""
+
+    link: LinkConfig = LinkConfig()
+    identity: IdentityConfig = IdentityConfig()
+    autopilot: AutopilotConfig = AutopilotConfig()
+    control: ControlConfig = ControlConfig()
+    route: RouteSection = RouteSection(source="mission")
+    planner: PlannerConfig = PlannerConfig()
+    sensors: Annotated[list[SensorConfig], Field(min_length=1)]
+    failsafe: FailsafeConfig = FailsafeConfig()
+    signing: SigningConfig = SigningConfig()
+    logging: LoggingConfig = LoggingConfig()
+    statustext: StatustextConfig = StatustextConfig()
+
+    @field_validator("sensors")
+    @classmethod
+    def _table(cls, v: list[SensorConfig]) -> list[SensorConfig]:
+        sensor_table(v)  # ValueError: duplicate ids, missing forward/back surface sensor, ...
+        return v
+
+    @model_validator(mode="after")
+    def _optional_ids_exist(self) -> ServiceConfig:
+        ids = {s.id for s in self.sensors}
+        unknown = sorted(set(self.failsafe.optional_sensor_ids) - ids)
+        if unknown:
+            raise ValueError(f"failsafe.optional_sensor_ids {unknown} are not in sensors")
+        return self
+
+    def sensor_table(self) -> SensorTable:
+        return sensor_table(self.sensors)
+
+    def resolve_paths(self, base_dir: Path) -> ServiceConfig:
+        """A copy with relative file paths made relative to `base_dir`."""
+
+        def fix(p: Path | None) -> Path | None:
+            return None if p is None or p.is_absolute() else base_dir / p
+
+        signing = self.signing.model_copy(
+            update={
+                "key_file": fix(self.signing.key_file),
+                "state_file": fix(self.signing.state_file),
+            }
+        )
+        logging_ = self.logging.model_copy(
+            update={"flight_log_dir": fix(self.logging.flight_log_dir)}
+        )
+        return self.model_copy(update={"signing": signing, "logging": logging_})
+
+
+# --- loading and error messages ------------------------------------------------------------
+
+
+class ConfigError(ValueError):
+    """A config file that cannot be used; `errors` holds one line per problem."""
+
+    def __init__(self, path: Path | None, errors: list[str]) -> None:
+        self.path = path
+        self.errors = errors
+        where = f"{path}: " if path else ""
+        super().__init__(where + "; ".join(errors))
+
+
+def _describe(value: Any) -> str:
+    if isinstance(value, dict):
+        return "a mapping" if value else "an empty mapping"
+    if isinstance(value, list):
+        return f"a list of {len(value)}"
+    if isinstance(value, float) and not math.isfinite(value):
+        return str(value)
+    text = repr(value)
+    return text if len(text) <= 60 else text[:57] + "..."
+
+
+def _expected(err: dict[str, Any]) -> str:
+    kind = err["type"]
+    msg = str(err["msg"])
+    if kind == "missing":
+        return "a value (required key)"
+    if kind == "extra_forbidden":
+        return "no such key (misspelt or not in this section)"
+    for prefix in ("Input should be ", "Value error, ", "Assertion failed, "):
+        if msg.startswith(prefix):
+            msg = msg[len(prefix) :]
+    if kind in ("greater_than", "greater_than_equal", "less_than", "less_than_equal"):
+        return "a number " + msg
+    return msg
+
+
+def format_errors(exc: ValidationError) -> list[str]:
+    """One `key.path: expected ..., found ...` line per pydantic error."""
+    lines = []
+    for err in exc.errors():
+        loc = ".".join(str(p) for p in err["loc"]) or "(top level)"
+        found = "nothing" if err["type"] == "missing" else _describe(err.get("input"))
+        lines.append(f"{loc}: expected {_expected(dict(err))}, found {found}")
+    return lines
+
+
+def parse_config(data: Any, path: Path | None = None) -> ServiceConfig:
+    """Validate already-parsed YAML; ConfigError lists every problem."""
+    if not isinstance(data, dict):
+        raise ConfigError(
+            path, [f"(top level): expected a mapping of sections, found {_describe(data)}"]
+        )
+    try:
+        cfg = ServiceConfig.model_validate(data)
+    except ValidationError as exc:
+        raise ConfigError(path, format_errors(exc)) from None
+    return cfg.resolve_paths(path.parent) if path is not None else cfg
+
+
+def load_config(path: Path) -> ServiceConfig:
+    """Read and validate a config file; ConfigError names each problem."""
+    try:
+        text = path.read_text()
+    except OSError as exc:
+        raise ConfigError(path, [f"cannot read the file: {exc.strerror or exc}"]) from None
+    try:
+        data = yaml.safe_load(text)
+    except yaml.YAMLError as exc:
+        mark = getattr(exc, "problem_mark", None)
+        where = f"line {mark.line + 1}, column {mark.column + 1}: " if mark is not None else ""
+        problem = getattr(exc, "problem", None) or str(exc)
+        raise ConfigError(path, [f"(YAML) {where}{problem}"]) from None
+    return parse_config(data, path)
+
+
+def check_config(path: Path, out: TextIO | None = None) -> int:
+    """`companion check-config`: 0 and a one-line summary if valid, else 2 and the errors."""
+    stream = out if out is not None else sys.stderr
+    try:
+        cfg = load_config(path)
+        _check_files(cfg)
+    except ConfigError as exc:
+        print(f"{path}: invalid configuration", file=stream)
+        for line in exc.errors:
+            print(f"  {line}", file=stream)
+        return 2
+    print(
+        f"{path}: OK ({len(cfg.sensors)} sensors, route from {cfg.route.source}, "
+        f"link {cfg.link.connection})",
+        file=out if out is not None else sys.stdout,
+    )
+    return 0
+
+
+def _check_files(cfg: ServiceConfig) -> None:
+    """Files the service will need at start: the signing key must be readable and valid."""
+    if cfg.signing.enabled and cfg.signing.key_file is not None:
+        from companion.service.signing import SigningKeyError, load_key
+
+        try:
+            load_key(cfg.signing.key_file)
+        except SigningKeyError as exc:
+            raise ConfigError(None, [f"signing.key_file: {exc}"]) from None
+
+
+__all__ = [
+    "AutoStartConfig",
+    "AutopilotConfig",
+    "ConfigError",
+    "ControlConfig",
+    "FailsafeConfig",
+    "IdentityConfig",
+    "LinkConfig",
+    "LoggingConfig",
+    "RouteSection",
+    "ServiceConfig",
+    "SigningConfig",
+    "StatustextConfig",
+    "StreamsConfig",
+    "check_config",
+    "format_errors",
+    "load_config",
+    "parse_config",
+]

@@ -1,0 +1,197 @@
+"""The MAVLink 2 codec: pymavlink's generated `MAVLink` object, bytes in and messages out.
+
+`MavCodec.decode(chunk)` feeds `parse_buffer` in robust mode and returns only good messages;
+everything else is counted, never raised: bad prefixes (garbage bytes), CRC failures, length
+errors, unknown message ids, signature rejections, and frames cut off at the end of a UDP
+datagram. For datagram links the parser state is reset after every datagram so a truncated
+frame cannot swallow the next datagram's messages. Any unexpected exception from the parser
+is counted and the parser reset.
+
+Signing: with a key, outgoing frames are signed and incoming frames must carry a valid
+signature with a timestamp newer than the last one seen on their stream (replays fail).
+pymavlink's own check records a stream's timestamp *before* checking the signature, so one
+forged frame with a large timestamp would lock out the real sender; `_Codec` checks the
+signature first.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import hmac
+import logging
+from collections.abc import Iterable
+from dataclasses import dataclass
+from typing import Any
+
+from pymavlink.dialects.v20 import ardupilotmega as mavlink2
+
+log = logging.getLogger(__name__)
+
+MAVLinkMessage = Any
+"""pymavlink messages are untyped; fields are read by name."""
+
+_SIGNATURE_TS = 6_000 * 1_000
+"""pymavlink's allowance for a new stream: one minute behind our timestamp."""
+
+
+class _Codec(mavlink2.MAVLink):  # type: ignore[misc]
+    def check_signature(self, msgbuf: bytearray, srcSystem: int, srcComponent: int) -> bool:
+        key = self.signing.secret_key
+        assert key is not None
+        if not hmac.compare_digest(
+            hashlib.sha256(key + bytes(msgbuf[:-6])).digest()[:6], bytes(msgbuf[-6:])
+        ):
+            return False
+        link_id = msgbuf[-13]
+        tlow, thigh = self.mav_sign_unpacker.unpack(msgbuf[-12:-6])
+        timestamp = int(tlow) + (int(thigh) << 32)
+        stream_key = (link_id, srcSystem, srcComponent)
+        last = self.signing.stream_timestamps.get(stream_key)
+        if last is not None:
+            if timestamp <= last:
+                return False  # replayed or reordered
+        elif timestamp + _SIGNATURE_TS < self.signing.timestamp:
+            return False  # a "new" stream far in the past
+        self.signing.stream_timestamps[stream_key] = timestamp
+        self.signing.timestamp = max(self.signing.timestamp, timestamp)
+        return True
+
+
+@dataclass(slots=True)
+class CodecCounters:
+    frames: int = 0
+    """Good frames decoded."""
+    garbage: int = 0
+    """Runs of bytes that were not a frame start."""
+    bad_crc: int = 0
+    bad_frame: int = 0
+    """Length, header or payload errors."""
+    bad_signature: int = 0
+    """Signed frames whose signature or timestamp failed (forged, wrong key, replayed)."""
+    unsigned_rejected: int = 0
+    """Frames without a signature while signing is required."""
+    unknown_msgid: int = 0
+    truncated: int = 0
+    """Partial frames left at the end of a datagram."""
+    parser_errors: int = 0
+    """Unexpected exceptions from the parser (it is reset)."""
+
+
+class MavCodec:
+    """Encode and decode MAVLink 2 frames for one source (system id, component id)."""
+
+    def __init__(self, system_id: int = 1, component_id: int = 191) -> None:
+        self.mav = _Codec(None, srcSystem=system_id, srcComponent=component_id)
+        self.mav.robust_parsing = True
+        self.counters = CodecCounters()
+        self._allow_unsigned: frozenset[int] = frozenset()
+
+    # -- identity & signing -----------------------------------------------------------------
+
+    @property
+    def system_id(self) -> int:
+        return int(self.mav.srcSystem)
+
+    @property
+    def component_id(self) -> int:
+        return int(self.mav.srcComponent)
+
+    def set_source(self, system_id: int, component_id: int) -> None:
+        self.mav.srcSystem = system_id
+        self.mav.srcComponent = component_id
+
+    def enable_signing(
+        self,
+        key: bytes,
+        *,
+        link_id: int = 0,
+        timestamp: int = 0,
+        allow_unsigned_msgids: Iterable[int] = (),
+    ) -> None:
+        """Sign outgoing frames and require valid signatures on incoming ones."""
+        if len(key) != 32:
+            raise ValueError(f"signing key must be 32 bytes, got {len(key)}")
+        s = self.mav.signing
+        s.secret_key = key
+        s.link_id = link_id
+        s.timestamp = max(int(timestamp), 1)
+        s.sign_outgoing = True
+        self._allow_unsigned = frozenset(allow_unsigned_msgids)
+        s.allow_unsigned_callback = self._allow_unsigned_cb
+
+    def _allow_unsigned_cb(self, _mav: object, msg_id: int) -> bool:
+        return msg_id in self._allow_unsigned
+
+    @property
+    def signing_enabled(self) -> bool:
+        return self.mav.signing.secret_key is not None
+
+    @property
+    def signing_timestamp(self) -> int:
+        return int(self.mav.signing.timestamp)
+
+    def advance_signing_clock(self, timestamp: int) -> None:
+        """Move the outgoing timestamp forward to at least `timestamp` (never back)."""
+        s = self.mav.signing
+        s.timestamp = max(int(s.timestamp), int(timestamp))
+
+    # -- encode / decode --------------------------------------------------------------------
+
+    def encode(self, msg: MAVLinkMessage) -> bytes:
+        """Pack (and sign) one message with our source ids and the next sequence number."""
+        buf: bytes = msg.pack(self.mav)
+        self.mav.seq = (self.mav.seq + 1) % 256
+        return buf
+
+    def decode(self, data: bytes, datagram: bool = True) -> list[MAVLinkMessage]:
+        """Good messages in `data`; everything else is counted in `counters`."""
+        out: list[MAVLinkMessage] = []
+        try:
+            msgs = self.mav.parse_buffer(data) or []
+        except Exception as exc:
+            self.counters.parser_errors += 1
+            log.debug("parser error: %r", exc)
+            self._reset()
+            return out
+        c = self.counters
+        for m in msgs:
+            mtype = m.get_type()
+            if mtype == "BAD_DATA":
+                reason = str(getattr(m, "reason", ""))
+                if reason == "Bad prefix":
+                    c.garbage += 1
+                elif "CRC" in reason:
+                    c.bad_crc += 1
+                elif reason == "Invalid signature":
+                    if m.get_msgbuf()[0] == mavlink2.PROTOCOL_MARKER_V2 and (
+                        m.get_msgbuf()[2] & mavlink2.MAVLINK_IFLAG_SIGNED
+                    ):
+                        c.bad_signature += 1
+                    else:
+                        c.unsigned_rejected += 1
+                else:
+                    c.bad_frame += 1
+            elif mtype.startswith("UNKNOWN_"):
+                c.unknown_msgid += 1
+            else:
+                c.frames += 1
+                out.append(m)
+        if datagram and self.mav.buf_len() > 0:
+            c.truncated += 1
+            self._reset()
+        return out
+
+    def _reset(self) -> None:
+        m = self.mav
+        m.buf = bytearray()
+        m.buf_index = 0
+        m.expected_length = mavlink2.HEADER_LEN_V1 + 2
+        m.have_prefix_error = False
+
+
+def new_message_factory() -> Any:
+    """A pymavlink `MAVLink` object for building messages (`.heartbeat_encode(...)`, ...)."""
+    return mavlink2.MAVLink(None)
+
+
+__all__ = ["CodecCounters", "MAVLinkMessage", "MavCodec", "mavlink2", "new_message_factory"]

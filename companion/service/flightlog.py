@@ -1,0 +1,251 @@
+"""The flight log: one JSON line per cycle, and a reader that turns it back into arrays.
+
+Files `flight-YYYYmmdd-HHMMSS[-N].jsonl` in the configured directory. The first line of each
+file is a header record; then records by `type`:
+
+    {"type": "header", "version": 1, "sensors": [...], "config": {...}, ...}
+    {"type": "frame", "t": .., "origin": [lat, lon, alt_amsl], "route": [[x, y], ...]}
+    {"type": "cycle", "t": s, "health": "active", "own": "engaged", "verdict": "run",
+     "reason": "", "pos": [x, y, z] | null, "rpy": [roll, pitch, yaw] | null,
+     "ranges": [m | null, ...], "sp": {"p": [x, y, z], "v": [vx, vy, vz], "yaw": rad,
+     "pitch": rad} | null, "sp_kind": "planner" | "hold" | "prime" | null,
+     "decision": str | null, "mode": str | null, "side": str | null,
+     "min_range": m | null, "finished": bool, "events": [str, ...]}
+    {"type": "counters", "t": .., "counters": {name: n, ...}}
+
+Frames as the planner's: local ENU metres anchored at home, yaw counter-clockwise from east,
+ranges in metres with 0 = nothing detected and null = missing/stale. Non-finite numbers are
+written as null (JSON has no NaN). Lines are buffered in memory and written by `flush`,
+which the service calls about once a second, so a cycle does no file I/O.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import logging
+import math
+import time
+from collections.abc import Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from companion.planner.types import FloatArray
+
+log = logging.getLogger(__name__)
+
+LOG_VERSION = 1
+
+
+def clean(value: Any) -> Any:
+    """JSON-safe copy: numpy to lists, non-finite floats to None."""
+    if isinstance(value, float):
+        return value if math.isfinite(value) else None
+    if isinstance(value, np.ndarray):
+        return (
+            [clean(float(v)) for v in value.ravel()]
+            if value.ndim <= 1
+            else [clean(row) for row in value]
+        )
+    if isinstance(value, (np.floating, np.integer)):
+        return clean(value.item())
+    if isinstance(value, dict):
+        return {str(k): clean(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [clean(v) for v in value]
+    return value
+
+
+class FlightLogWriter:
+    """Buffered JSON-lines writer with size rotation and a bound on the files kept."""
+
+    def __init__(self, directory: Path, max_bytes: int = 50_000_000, keep_files: int = 20):
+        self.directory = directory
+        self.max_bytes = max_bytes
+        self.keep_files = keep_files
+        self._lines: list[str] = []
+        self._file: Any = None
+        self._size = 0
+        self._part = 0
+        self._stem = time.strftime("flight-%Y%m%d-%H%M%S")
+        self._header: dict[str, Any] | None = None
+        self.path: Path | None = None
+        self.errors = 0
+        self.records = 0
+
+    def header(self, header: dict[str, Any]) -> None:
+        self._header = {"type": "header", "version": LOG_VERSION, **header}
+        self._lines.append(json.dumps(clean(self._header)))
+
+    def write(self, record: dict[str, Any]) -> None:
+        self.records += 1
+        self._lines.append(json.dumps(clean(record), separators=(",", ":")))
+        if len(self._lines) > 100_000:  # disk gone: keep memory bounded
+            del self._lines[:-10_000]
+            self.errors += 1
+
+    def flush(self) -> None:
+        if not self._lines:
+            return
+        lines, self._lines = self._lines, []
+        try:
+            if self._file is None:
+                self._open()
+            data = "\n".join(lines) + "\n"
+            self._file.write(data)
+            self._file.flush()
+            self._size += len(data)
+            if self._size >= self.max_bytes:
+                self._rotate()
+        except OSError as exc:
+            self.errors += 1
+            log.warning("flight log: %s", exc)
+            self._file = None
+
+    def _open(self) -> None:
+        self.directory.mkdir(parents=True, exist_ok=True)
+        suffix = f"-{self._part}" if self._part else ""
+        self.path = self.directory / f"{self._stem}{suffix}.jsonl"
+        self._file = self.path.open("a", encoding="utf-8")
+        self._size = self.path.stat().st_size
+        if self._part and self._header is not None:
+            line = json.dumps(clean(self._header)) + "\n"
+            self._file.write(line)
+            self._size += len(line)
+        self._prune()
+
+    def _rotate(self) -> None:
+        self._file.close()
+        self._file = None
+        self._part += 1
+
+    def _prune(self) -> None:
+        files = sorted(self.directory.glob("flight-*.jsonl"), key=lambda p: p.stat().st_mtime)
+        for old in files[: max(0, len(files) - self.keep_files)]:
+            if old != self.path:
+                with contextlib.suppress(OSError):
+                    old.unlink()
+
+    def close(self) -> None:
+        self.flush()
+        if self._file is not None:
+            self._file.close()
+            self._file = None
+
+
+# --- reading -------------------------------------------------------------------------------
+
+
+def iter_records(path: Path) -> Iterator[dict[str, Any]]:
+    """Records of a flight log file; a torn last line (crash) is skipped."""
+    with path.open(encoding="utf-8") as f:
+        for line in f:
+            line = line.strip()
+            if not line:
+                continue
+            try:
+                rec = json.loads(line)
+            except json.JSONDecodeError:
+                continue
+            if isinstance(rec, dict):
+                yield rec
+
+
+def _vec(value: Any, n: int) -> list[float]:
+    if not isinstance(value, list) or len(value) != n:
+        return [math.nan] * n
+    return [math.nan if v is None else float(v) for v in value]
+
+
+@dataclass
+class FlightLog:
+    """A flight log as arrays, one row per cycle (NaN where a value was absent)."""
+
+    header: dict[str, Any]
+    t_s: FloatArray
+    position_enu: FloatArray
+    """(n, 3) vehicle position."""
+    rpy_rad: FloatArray
+    """(n, 3) roll, pitch, yaw (ENU/FLU)."""
+    ranges_m: FloatArray
+    """(n, k) range readings in sensor-table order."""
+    setpoint_position_enu: FloatArray
+    setpoint_velocity_enu: FloatArray
+    setpoint_yaw_rad: FloatArray
+    setpoint_pitch_rad: FloatArray
+    setpoint_kind: list[str | None]
+    health: list[str]
+    verdict: list[str]
+    decision: list[str | None]
+    path_mode: list[str | None]
+    side: list[str | None]
+    min_range_m: FloatArray
+    finished: np.ndarray
+    events: list[tuple[float, str]] = field(default_factory=list)
+    frames: list[dict[str, Any]] = field(default_factory=list)
+    counters: dict[str, int] = field(default_factory=dict)
+
+    def __len__(self) -> int:
+        return len(self.t_s)
+
+
+def read_flight_log(path: Path) -> FlightLog:
+    """Read a flight log file (see the module docstring for the format)."""
+    header: dict[str, Any] = {}
+    frames: list[dict[str, Any]] = []
+    counters: dict[str, int] = {}
+    events: list[tuple[float, str]] = []
+    rows: list[dict[str, Any]] = []
+    for rec in iter_records(path):
+        kind = rec.get("type")
+        if kind == "header" and not header:
+            header = rec
+        elif kind == "frame":
+            frames.append(rec)
+        elif kind == "counters":
+            counters = dict(rec.get("counters", {}))
+        elif kind == "cycle":
+            rows.append(rec)
+            for e in rec.get("events", []):
+                events.append((float(rec.get("t", math.nan)), str(e)))
+    k = len(header.get("sensors", [])) or max((len(r.get("ranges") or []) for r in rows), default=0)
+
+    def arr(key: str, n: int) -> FloatArray:
+        return np.array([_vec(r.get(key), n) for r in rows], dtype=np.float64).reshape(-1, n)
+
+    def sp(key: str, n: int) -> FloatArray:
+        vals = [_vec((r.get("sp") or {}).get(key), n) for r in rows]
+        return np.array(vals, dtype=np.float64).reshape(-1, n)
+
+    def scalar(v: Any) -> float:
+        return math.nan if v is None else float(v)
+
+    return FlightLog(
+        header=header,
+        t_s=np.array([scalar(r.get("t")) for r in rows], dtype=np.float64),
+        position_enu=arr("pos", 3),
+        rpy_rad=arr("rpy", 3),
+        ranges_m=arr("ranges", k),
+        setpoint_position_enu=sp("p", 3),
+        setpoint_velocity_enu=sp("v", 3),
+        setpoint_yaw_rad=np.array(
+            [scalar((r.get("sp") or {}).get("yaw")) for r in rows], dtype=np.float64
+        ),
+        setpoint_pitch_rad=np.array(
+            [scalar((r.get("sp") or {}).get("pitch")) for r in rows], dtype=np.float64
+        ),
+        setpoint_kind=[r.get("sp_kind") for r in rows],
+        health=[str(r.get("health", "")) for r in rows],
+        verdict=[str(r.get("verdict", "")) for r in rows],
+        decision=[r.get("decision") for r in rows],
+        path_mode=[r.get("mode") for r in rows],
+        side=[r.get("side") for r in rows],
+        min_range_m=np.array([scalar(r.get("min_range")) for r in rows], dtype=np.float64),
+        finished=np.array([bool(r.get("finished", False)) for r in rows], dtype=bool),
+        events=events,
+        frames=frames,
+        counters=counters,
+    )

@@ -1,0 +1,552 @@
+"""Byte transports under the MAVLink codec: UDP in/out, TCP, serial, and an in-memory pair.
+
+A `Link` moves raw bytes and knows nothing about MAVLink. It calls its receiver in the event
+loop with every chunk as it arrives (a UDP datagram, or whatever a stream read returned), and
+`send` never blocks and never raises for I/O trouble: a failed or refused send is dropped and
+counted in `stats`, because a control loop must not stall on a socket. Memory stays bounded:
+oversized datagrams and sends beyond the write-buffer limit are dropped and counted.
+
+Connection strings follow pymavlink's forms:
+
+    udpin:HOST:PORT     listen (also `udp:`); replies go to the autopilot's address
+    udpout:HOST:PORT    send to HOST:PORT, receive its replies
+    tcp:HOST:PORT       connect (reconnects with back-off)
+    serial:DEVICE:BAUD  or DEVICE:BAUD or DEVICE,BAUD (DEVICE starting with /dev/)
+
+Serial needs no pyserial: the device is opened non-blocking, set raw with termios and watched
+with the event loop's `add_reader`/`add_writer`.
+"""
+
+from __future__ import annotations
+
+import abc
+import asyncio
+import contextlib
+import dataclasses
+import logging
+import os
+import termios
+import tty
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Literal
+
+log = logging.getLogger(__name__)
+
+Peer = tuple[str, int] | None
+Receiver = Callable[[bytes, Peer], None]
+"""Called with (chunk, peer address or None) for every chunk received."""
+
+MAX_DATAGRAM_BYTES = 16 * 1024
+"""A MAVLink frame is at most 280 bytes; larger datagrams are dropped and counted."""
+MAX_WRITE_BUFFER_BYTES = 64 * 1024
+"""Sends are dropped (and counted) while this much is already waiting in the kernel/transport."""
+READ_CHUNK_BYTES = 4096
+
+
+@dataclass(slots=True)
+class LinkStats:
+    chunks_in: int = 0
+    bytes_in: int = 0
+    chunks_out: int = 0
+    bytes_out: int = 0
+    send_dropped: int = 0
+    """Sends dropped: no peer yet, link down, or write buffer full."""
+    oversized_dropped: int = 0
+    errors: int = 0
+    """Transport errors reported by the OS (ICMP unreachable, EIO, ...)."""
+    reconnects: int = 0
+
+    def as_dict(self) -> dict[str, int]:
+        return dataclasses.asdict(self)
+
+
+class Link(abc.ABC):
+    """A bidirectional byte transport. `datagram` links deliver self-contained chunks."""
+
+    datagram: bool = False
+
+    def __init__(self, name: str) -> None:
+        self.name = name
+        self.stats = LinkStats()
+        self._receiver: Receiver | None = None
+
+    @abc.abstractmethod
+    async def open(self, receiver: Receiver) -> None:
+        """Start receiving; `receiver` is called in the event loop for every chunk."""
+
+    @abc.abstractmethod
+    def send(self, data: bytes) -> None:
+        """Queue `data` for sending. Never blocks, never raises for I/O errors."""
+
+    @abc.abstractmethod
+    async def close(self) -> None:
+        """Stop receiving and release the transport. Safe to call twice."""
+
+    def pin_peer(self, peer: Peer) -> None:  # noqa: B027 - optional hook, no-op by default
+        """Tell a listening link where the autopilot is (replies go only there)."""
+
+    def _deliver(self, data: bytes, peer: Peer) -> None:
+        self.stats.chunks_in += 1
+        self.stats.bytes_in += len(data)
+        if self._receiver is not None:
+            self._receiver(data, peer)
+
+
+# --- connection strings --------------------------------------------------------------------
+
+LinkKind = Literal["udpin", "udpout", "tcp", "serial"]
+
+
+@dataclass(frozen=True, slots=True)
+class LinkSpec:
+    """A parsed connection string."""
+
+    kind: LinkKind
+    host: str = ""
+    port: int = 0
+    device: str = ""
+    baud: int = 0
+
+    def __str__(self) -> str:
+        if self.kind == "serial":
+            return f"serial:{self.device}:{self.baud}"
+        return f"{self.kind}:{self.host}:{self.port}"
+
+
+def _host_port(rest: str, text: str) -> tuple[str, int]:
+    host, sep, port_text = rest.rpartition(":")
+    if not sep or not host:
+        raise ValueError(f"expected HOST:PORT in {text!r}")
+    try:
+        port = int(port_text)
+    except ValueError:
+        raise ValueError(f"port must be an integer in {text!r}, found {port_text!r}") from None
+    if not 0 <= port <= 65535:
+        raise ValueError(f"port must be 0..65535 in {text!r}, found {port}")
+    return host.strip("[]"), port
+
+
+def parse_connection(text: str) -> LinkSpec:
+    """Parse a pymavlink-style connection string; ValueError says what is wrong."""
+    s = text.strip()
+    scheme, sep, rest = s.partition(":")
+    if sep and scheme in ("udpin", "udp"):
+        host, port = _host_port(rest, text)
+        return LinkSpec("udpin", host=host, port=port)
+    if sep and scheme == "udpout":
+        host, port = _host_port(rest, text)
+        if port == 0:
+            raise ValueError(f"udpout needs a destination port in {text!r}")
+        return LinkSpec("udpout", host=host, port=port)
+    if sep and scheme == "tcp":
+        host, port = _host_port(rest, text)
+        if port == 0:
+            raise ValueError(f"tcp needs a port in {text!r}")
+        return LinkSpec("tcp", host=host, port=port)
+    device = rest if (sep and scheme == "serial") else s
+    if device.startswith("/dev/") or (sep and scheme == "serial"):
+        dev, sep2, baud_text = device.replace(",", ":").rpartition(":")
+        if not sep2 or not dev:
+            raise ValueError(f"expected DEVICE:BAUD in {text!r}")
+        try:
+            baud = int(baud_text)
+        except ValueError:
+            raise ValueError(f"baud rate must be an integer in {text!r}") from None
+        if not hasattr(termios, f"B{baud}"):
+            raise ValueError(f"unsupported baud rate {baud} in {text!r}")
+        return LinkSpec("serial", device=dev, baud=baud)
+    raise ValueError(
+        f"unknown connection string {text!r}; use udpin:HOST:PORT, udpout:HOST:PORT, "
+        "tcp:HOST:PORT or serial:DEVICE:BAUD"
+    )
+
+
+def open_link(spec: LinkSpec | str) -> Link:
+    """The Link for a connection string or spec (not yet opened)."""
+    if isinstance(spec, str):
+        spec = parse_connection(spec)
+    if spec.kind == "udpin":
+        return UdpInLink(spec.host, spec.port)
+    if spec.kind == "udpout":
+        return UdpOutLink(spec.host, spec.port)
+    if spec.kind == "tcp":
+        return TcpLink(spec.host, spec.port)
+    return SerialLink(spec.device, spec.baud)
+
+
+# --- UDP -----------------------------------------------------------------------------------
+
+
+class _UdpProtocol(asyncio.DatagramProtocol):
+    def __init__(self, link: _UdpLink) -> None:
+        self.link = link
+
+    def datagram_received(self, data: bytes, addr: tuple[str, int]) -> None:
+        self.link._on_datagram(data, (addr[0], addr[1]))
+
+    def error_received(self, exc: Exception) -> None:
+        self.link.stats.errors += 1
+        log.debug("%s: %s", self.link.name, exc)
+
+
+def _buffered(transport: asyncio.BaseTransport) -> int:
+    """Bytes waiting in a transport's write buffer (0 if it cannot tell)."""
+    size = getattr(transport, "get_write_buffer_size", None)
+    return int(size()) if size is not None else 0
+
+
+class _UdpLink(Link):
+    datagram = True
+
+    def __init__(self, name: str) -> None:
+        super().__init__(name)
+        self._transport: asyncio.DatagramTransport | None = None
+
+    def _on_datagram(self, data: bytes, peer: tuple[str, int]) -> None:
+        if len(data) > MAX_DATAGRAM_BYTES:
+            self.stats.oversized_dropped += 1
+            return
+        self._deliver(data, peer)
+
+    def _sendto(self, data: bytes, addr: tuple[str, int] | None) -> None:
+        t = self._transport
+        if t is None or t.is_closing() or _buffered(t) > MAX_WRITE_BUFFER_BYTES:
+            self.stats.send_dropped += 1
+            return
+        try:
+            t.sendto(data, addr)
+        except OSError as exc:  # e.g. network unreachable: count, never stop the loop
+            self.stats.errors += 1
+            log.debug("%s: send failed: %s", self.name, exc)
+            return
+        self.stats.chunks_out += 1
+        self.stats.bytes_out += len(data)
+
+    @property
+    def local_address(self) -> tuple[str, int]:
+        """The bound (host, port); useful with port 0."""
+        assert self._transport is not None, "link not open"
+        host, port = self._transport.get_extra_info("sockname")[:2]
+        return str(host), int(port)
+
+    async def close(self) -> None:
+        if self._transport is not None:
+            self._transport.close()
+            self._transport = None
+
+
+class UdpInLink(_UdpLink):
+    """Listen on HOST:PORT. Replies go to the pinned autopilot address, else the last sender."""
+
+    def __init__(self, host: str, port: int) -> None:
+        super().__init__(f"udpin:{host}:{port}")
+        self.host, self.port = host, port
+        self._last_peer: Peer = None
+        self._pinned: Peer = None
+
+    async def open(self, receiver: Receiver) -> None:
+        self._receiver = receiver
+        loop = asyncio.get_running_loop()
+        self._transport, _ = await loop.create_datagram_endpoint(
+            lambda: _UdpProtocol(self), local_addr=(self.host, self.port)
+        )
+
+    def _on_datagram(self, data: bytes, peer: tuple[str, int]) -> None:
+        if self._pinned is None:
+            self._last_peer = peer
+        super()._on_datagram(data, peer)
+
+    def pin_peer(self, peer: Peer) -> None:
+        if peer is not None and peer != self._pinned:
+            log.info("%s: autopilot at %s:%d", self.name, peer[0], peer[1])
+            self._pinned = peer
+
+    @property
+    def peer(self) -> Peer:
+        return self._pinned or self._last_peer
+
+    def send(self, data: bytes) -> None:
+        peer = self.peer
+        if peer is None:
+            self.stats.send_dropped += 1
+            return
+        self._sendto(data, peer)
+
+
+class UdpOutLink(_UdpLink):
+    """Send to HOST:PORT from an ephemeral port and receive its replies."""
+
+    def __init__(self, host: str, port: int) -> None:
+        super().__init__(f"udpout:{host}:{port}")
+        self.host, self.port = host, port
+
+    async def open(self, receiver: Receiver) -> None:
+        self._receiver = receiver
+        loop = asyncio.get_running_loop()
+        self._transport, _ = await loop.create_datagram_endpoint(
+            lambda: _UdpProtocol(self), remote_addr=(self.host, self.port)
+        )
+
+    def send(self, data: bytes) -> None:
+        self._sendto(data, None)
+
+
+# --- TCP -----------------------------------------------------------------------------------
+
+
+class TcpLink(Link):
+    """Connect to HOST:PORT; reconnect with back-off (0.5 s doubling to 5 s) when it drops."""
+
+    def __init__(self, host: str, port: int) -> None:
+        super().__init__(f"tcp:{host}:{port}")
+        self.host, self.port = host, port
+        self._writer: asyncio.StreamWriter | None = None
+        self._task: asyncio.Task[None] | None = None
+        self.connected = asyncio.Event()
+
+    async def open(self, receiver: Receiver) -> None:
+        self._receiver = receiver
+        self._task = asyncio.create_task(self._run(), name=self.name)
+
+    async def _run(self) -> None:
+        backoff = 0.5
+        while True:
+            try:
+                reader, writer = await asyncio.open_connection(self.host, self.port)
+            except OSError as exc:
+                self.stats.errors += 1
+                log.warning("%s: connect failed: %s; retrying in %.1f s", self.name, exc, backoff)
+                await asyncio.sleep(backoff)
+                backoff = min(backoff * 2.0, 5.0)
+                continue
+            backoff = 0.5
+            self._writer = writer
+            self.connected.set()
+            log.info("%s: connected", self.name)
+            try:
+                while data := await reader.read(READ_CHUNK_BYTES):
+                    self._deliver(data, None)
+            except OSError as exc:
+                self.stats.errors += 1
+                log.warning("%s: %s", self.name, exc)
+            finally:
+                self.connected.clear()
+                self._writer = None
+                writer.close()
+            self.stats.reconnects += 1
+            log.warning("%s: connection closed; reconnecting", self.name)
+
+    def send(self, data: bytes) -> None:
+        w = self._writer
+        if (
+            w is None
+            or w.is_closing()
+            or w.transport.get_write_buffer_size() > (MAX_WRITE_BUFFER_BYTES)
+        ):
+            self.stats.send_dropped += 1
+            return
+        w.write(data)
+        self.stats.chunks_out += 1
+        self.stats.bytes_out += len(data)
+
+    async def close(self) -> None:
+        if self._task is not None:
+            self._task.cancel()
+            with contextlib.suppress(asyncio.CancelledError):
+                await self._task
+            self._task = None
+        if self._writer is not None:
+            self._writer.close()
+            self._writer = None
+
+
+# --- serial --------------------------------------------------------------------------------
+
+
+def configure_serial_fd(fd: int, baud: int) -> None:
+    """Raw 8N1, no flow control, at `baud`, on an open tty file descriptor."""
+    speed = getattr(termios, f"B{baud}", None)
+    if speed is None:
+        raise ValueError(f"unsupported baud rate {baud}")
+    tty.setraw(fd)
+    attrs = termios.tcgetattr(fd)
+    attrs[2] |= termios.CLOCAL | termios.CREAD  # cflag: ignore modem lines, enable receiver
+    attrs[2] &= ~getattr(termios, "CRTSCTS", 0)
+    attrs[4] = attrs[5] = speed
+    termios.tcsetattr(fd, termios.TCSANOW, attrs)
+
+
+class SerialLink(Link):
+    """A serial device (or pty) on the event loop; reopens it when it goes away (USB unplug)."""
+
+    def __init__(self, device: str, baud: int) -> None:
+        super().__init__(f"serial:{device}:{baud}")
+        self.device, self.baud = device, baud
+        self._fd: int | None = None
+        self._out = bytearray()
+        self._reopen: asyncio.Task[None] | None = None
+        self._closed = False
+
+    async def open(self, receiver: Receiver) -> None:
+        self._receiver = receiver
+        self._closed = False
+        self._open_fd()
+
+    def _open_fd(self) -> None:
+        fd = os.open(self.device, os.O_RDWR | os.O_NOCTTY | os.O_NONBLOCK)
+        try:
+            configure_serial_fd(fd, self.baud)
+        except (termios.error, ValueError):
+            os.close(fd)
+            raise
+        self._fd = fd
+        asyncio.get_running_loop().add_reader(fd, self._on_readable)
+
+    def _on_readable(self) -> None:
+        assert self._fd is not None
+        try:
+            data = os.read(self._fd, READ_CHUNK_BYTES)
+        except BlockingIOError:
+            return
+        except OSError as exc:
+            self._fail(exc)
+            return
+        if data:
+            self._deliver(data, None)
+
+    def _fail(self, exc: OSError) -> None:
+        self.stats.errors += 1
+        log.warning("%s: %s; reopening", self.name, exc)
+        self._drop_fd()
+        if not self._closed and self._reopen is None:
+            self._reopen = asyncio.get_running_loop().create_task(self._reopen_loop())
+
+    async def _reopen_loop(self) -> None:
+        try:
+            while not self._closed and self._fd is None:
+                await asyncio.sleep(1.0)
+                try:
+                    self._open_fd()
+                    self.stats.reconnects += 1
+                except OSError as exc:
+                    log.debug("%s: reopen failed: %s", self.name, exc)
+        finally:
+            self._reopen = None
+
+    def _drop_fd(self) -> None:
+        if self._fd is None:
+            return
+        loop = asyncio.get_running_loop()
+        loop.remove_reader(self._fd)
+        loop.remove_writer(self._fd)
+        with contextlib.suppress(OSError):
+            os.close(self._fd)
+        self._fd = None
+        self._out.clear()
+
+    def send(self, data: bytes) -> None:
+        if self._fd is None or len(self._out) + len(data) > MAX_WRITE_BUFFER_BYTES:
+            self.stats.send_dropped += 1
+            return
+        self.stats.chunks_out += 1
+        self.stats.bytes_out += len(data)
+        if self._out:
+            self._out += data
+            return
+        try:
+            n = os.write(self._fd, data)
+        except BlockingIOError:
+            n = 0
+        except OSError as exc:
+            self._fail(exc)
+            return
+        if n < len(data):
+            self._out += data[n:]
+            asyncio.get_running_loop().add_writer(self._fd, self._on_writable)
+
+    def _on_writable(self) -> None:
+        assert self._fd is not None
+        try:
+            n = os.write(self._fd, self._out)
+        except BlockingIOError:
+            return
+        except OSError as exc:
+            self._fail(exc)
+            return
+        del self._out[:n]
+        if not self._out:
+            asyncio.get_running_loop().remove_writer(self._fd)
+
+    async def close(self) -> None:
+        self._closed = True
+        if self._reopen is not None:
+            self._reopen.cancel()
+            with contextlib.suppress(asyncio.CancelledError):
+                await self._reopen
+        self._drop_fd()
+
+
+# --- in memory -----------------------------------------------------------------------------
+
+
+class MemoryLink(Link):
+    """One end of an in-memory pair (see `memory_pair`); can record what it sent.
+
+    Delivery is scheduled with `call_soon`, as a socket would, so a reply never re-enters the
+    sender's stack. `inject` delivers raw bytes to this end as if received; `up = False`
+    simulates a cut link (sends in both directions are dropped).
+    """
+
+    def __init__(self, name: str = "memory", datagram: bool = True, record: bool = False) -> None:
+        super().__init__(name)
+        self.datagram = datagram
+        self.record = record
+        self.sent: list[bytes] = []
+        self.up = True
+        self.other: MemoryLink | None = None
+
+    async def open(self, receiver: Receiver) -> None:
+        self._receiver = receiver
+
+    def send(self, data: bytes) -> None:
+        if self.record:
+            self.sent.append(bytes(data))
+        other = self.other
+        if not self.up or other is None or not other.up or other._receiver is None:
+            self.stats.send_dropped += 1
+            return
+        self.stats.chunks_out += 1
+        self.stats.bytes_out += len(data)
+        asyncio.get_running_loop().call_soon(other._deliver, bytes(data), None)
+
+    def inject(self, data: bytes) -> None:
+        """Deliver `data` to this end's receiver now."""
+        self._deliver(bytes(data), None)
+
+    async def close(self) -> None:
+        self._receiver = None
+
+
+def memory_pair(datagram: bool = True) -> tuple[MemoryLink, MemoryLink]:
+    """Two connected in-memory links: what one sends, the other receives."""
+    a = MemoryLink("memory-a", datagram)
+    b = MemoryLink("memory-b", datagram)
+    a.other, b.other = b, a
+    return a, b
+
+
+__all__ = [
+    "MAX_DATAGRAM_BYTES",
+    "Link",
+    "LinkSpec",
+    "LinkStats",
+    "MemoryLink",
+    "SerialLink",
+    "TcpLink",
+    "UdpInLink",
+    "UdpOutLink",
+    "memory_pair",
+    "open_link",
+    "parse_connection",
+]

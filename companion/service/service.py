@@ -1,0 +1,1022 @@
+"""The companion service: MAVLink in, planner cycle, setpoints out.
+
+Life cycle (`Service.run`):
+
+1. open the link; heartbeat at `identity.heartbeat_hz` from the start (MAV_STATE BOOT);
+2. wait for an autopilot heartbeat, tell ArduPilot from PX4, lock onto its (system,
+   component) id and take its system id as ours unless configured;
+3. configure: request the message rates (MAV_CMD_SET_MESSAGE_INTERVAL, acks checked) and
+   HOME_POSITION (MAV_CMD_REQUEST_MESSAGE), wait for home and position, get the route
+   (config points, or the autopilot's mission);
+4. STANDBY until the vehicle is armed, in GUIDED/OFFBOARD and above `min_engage_height_m`
+   (or, with `auto_start`, arm/take off/switch mode itself), then fly: each cycle step the
+   planner and send its setpoint (ACTIVE);
+5. on failsafes hold (CRITICAL) or stop commanding (EMERGENCY), on a mode change stop at once
+   and never switch back; when the autopilot heartbeat returns after a loss, configure again.
+
+Cycles run on the monotonic clock at `control.rate_hz`, or, with `control.time_source: sim`,
+on the simulator's lockstep TIMESYNC ticks: the tick's time becomes the service clock, a cycle
+runs if one is due, its setpoint is sent, and only then is the TIMESYNC answered, so a
+faster-than-real-time simulation sees exactly the cycles a real-time flight would.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import logging
+import math
+import signal
+import sys
+import time
+from collections import Counter
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Protocol
+
+import numpy as np
+
+from companion.config import ConfigError, ServiceConfig, load_config
+from companion.geo import GeoPoint, LocalFrame
+from companion.planner.frames import attitude_ned_to_enu, wrap_pi
+from companion.planner.params import PlannerParams
+from companion.planner.route import Route
+from companion.planner.sensors import SensorTable
+from companion.planner.types import FloatArray, Setpoint, StepResult, VehicleState
+from companion.service.clock import MonotonicClock, SimClock
+from companion.service.codec import MavCodec, MAVLinkMessage, mavlink2
+from companion.service.commands import CommandClient, CommandError
+from companion.service.connection import Connection
+from companion.service.failsafe import Assessment, Failsafe, Limits, Verdict, assess
+from companion.service.flightlog import FlightLogWriter
+from companion.service.identity import Health, companion_system_id, heartbeat_message
+from companion.service.link import Link, open_link
+from companion.service.mission import (
+    MissionError,
+    download_mission,
+    latlon_to_xy,
+    mission_waypoints,
+)
+from companion.service.modes import (
+    AutopilotKind,
+    Ownership,
+    OwnState,
+    VehicleMode,
+    autopilot_kind,
+    is_armed,
+    is_guided,
+    mode_name,
+    set_mode_params,
+)
+from companion.service.notify import SystemdNotifier
+from companion.service.setpoints import SetpointFrame, position_target
+from companion.service.signing import SigningKeyError, SigningState, load_key, timestamp_now
+from companion.service.statustext import Severity, StatusTexts, statustext_message
+from companion.service.telemetry import Telemetry
+
+log = logging.getLogger("companion.service")
+
+STREAM_IDS = {
+    "ATTITUDE": mavlink2.MAVLINK_MSG_ID_ATTITUDE,
+    "GLOBAL_POSITION_INT": mavlink2.MAVLINK_MSG_ID_GLOBAL_POSITION_INT,
+    "DISTANCE_SENSOR": mavlink2.MAVLINK_MSG_ID_DISTANCE_SENSOR,
+    "HOME_POSITION": mavlink2.MAVLINK_MSG_ID_HOME_POSITION,
+}
+MIN_BASE_POINT_SPACING_M = 0.5
+"""Base points closer than this to the vehicle when it takes over are taken as passed."""
+
+
+class PlannerLike(Protocol):
+    """What the service needs of `companion.planner.Planner`."""
+
+    def step(self, state: VehicleState, ranges_m: FloatArray, dt_s: float) -> StepResult: ...
+
+    def set_desired_height(self, h_d_m: float) -> None: ...
+
+
+PlannerFactory = Callable[[PlannerParams, SensorTable, Route, FloatArray], PlannerLike]
+
+
+def default_planner_factory(
+    params: PlannerParams, sensors: SensorTable, route: Route, start_position_enu: FloatArray
+) -> PlannerLike:
+    from companion.planner import Planner
+
+    planner: PlannerLike = Planner(params, sensors, route, start_position_enu)
+    return planner
+
+
+@dataclass(frozen=True, slots=True)
+class _Hold:
+    position_enu: FloatArray
+    yaw_rad: float
+
+
+class ServiceCounters(Counter[str]):
+    """All counters by dotted name: link.*, codec.*, conn.*, input.*, signing.*, service.*."""
+
+
+class Service:
+    """The companion service around one autopilot link.
+
+    config: a validated ServiceConfig. link: an unopened Link (`open_link(...)` or a
+    `MemoryLink`). planner_factory: builds the planner (default `companion.planner.Planner`).
+    notifier: systemd notification (default from the environment).
+    """
+
+    def __init__(
+        self,
+        config: ServiceConfig,
+        link: Link,
+        *,
+        planner_factory: PlannerFactory | None = None,
+        notifier: SystemdNotifier | None = None,
+    ) -> None:
+        self.cfg = config
+        self.link = link
+        self.planner_factory = planner_factory or default_planner_factory
+        self.notifier = notifier or SystemdNotifier()
+        self.sim_time = config.control.time_source == "sim"
+        self.clock: MonotonicClock | SimClock = SimClock() if self.sim_time else MonotonicClock()
+        self.sensors = config.sensor_table()
+        self.params = config.planner.to_params()
+        self.period_s = 1.0 / config.control.rate_hz
+
+        ident = config.identity
+        sid = ident.system_id if isinstance(ident.system_id, int) else 1
+        self.codec = MavCodec(sid, ident.component_id)
+        self.conn = Connection(link, self.codec, self.clock.now)
+        self.conn.on_message = self._on_message
+        self.conn.on_unlocked = self._on_unlocked_heartbeat
+        fs = config.failsafe
+        self.tel = Telemetry(
+            self.sensors, max_speed_mps=fs.max_speed_mps, jump_accept_s=fs.jump_accept_s
+        )
+        ap = config.autopilot
+        self.commands = CommandClient(self.conn, ap.command_timeout_s, ap.command_retries)
+        self.ownership = Ownership(config.control.reengage)
+        self.failsafe = Failsafe(fs.resume_after_s)
+        self.limits = Limits(
+            ap.heartbeat_timeout_s,
+            fs.position_max_age_s,
+            fs.attitude_max_age_s,
+            fs.sensor_max_age_s,
+        )
+        optional = set(fs.optional_sensor_ids)
+        self.required_sensors = [
+            i for i, s in enumerate(self.sensors.specs) if s.sensor_id not in optional
+        ]
+        st = config.statustext
+        self.texts = StatusTexts(st.max_per_s, st.burst, st.repeat_interval_s)
+        self.flight_log: FlightLogWriter | None = None
+        if config.logging.flight_log_dir is not None:
+            self.flight_log = FlightLogWriter(
+                config.logging.flight_log_dir,
+                int(config.logging.max_file_mb * 1e6),
+                config.logging.keep_files,
+            )
+        self.signing_state = SigningState(config.signing.state_file)
+
+        self.counters = Counter[str]()
+        self.kind: AutopilotKind | None = None
+        self.vehicle_type = 0
+        self.setpoint_frame: SetpointFrame | None = None
+        self.health = Health.BOOT
+        self.configured = False
+        self.frame: LocalFrame | None = None
+        self.frame_frozen = False
+        self._frame_key: tuple[GeoPoint, int] | None = None
+        self.route_source_points: FloatArray | None = None
+        """Base points (n, 2) in `frame`, or None until known."""
+        self._mission_geo: list[tuple[float, float]] | None = None
+        self.planner: PlannerLike | None = None
+        self.next_point = 0
+        self._seg_start: FloatArray | None = None
+        self.last_result: StepResult | None = None
+        self.last_setpoint: Setpoint | None = None
+        self.last_verdict = Assessment(Verdict.STOP, "starting")
+        self.route_finished = asyncio.Event()
+        self._finish_handled = False
+        self._hold: _Hold | None = None
+        self._planner_failed = False
+        self._priming = False
+        self._auto_busy = False
+        self._auto_done = False
+        self._planner_t: float | None = None
+        self._next_cycle_t: float | None = None
+        self._last_cycle_wall: float | None = None
+        self._last_hb_rx: float | None = None
+        self._t0_wall = time.monotonic()
+        self._stop = asyncio.Event()
+        self._autopilot_seen = asyncio.Event()
+        self._reconfigure = asyncio.Event()
+        self._tasks: list[asyncio.Task[Any]] = []
+        self._fatal: BaseException | None = None
+        self._counter_snapshot: dict[str, int] = {}
+
+    # === public ============================================================================
+
+    async def run(self) -> int:
+        """Run until `stop()`; 0 on a clean stop, 1 after a fatal error."""
+        try:
+            self._setup_signing()
+        except SigningKeyError as exc:
+            log.error("%s", exc)
+            return 2
+        try:
+            await self.conn.open()
+        except OSError as exc:
+            log.error("cannot open %s: %s", self.link.name, exc)
+            return 1
+        log.info(
+            "companion service on %s (%s time, %.0f Hz)",
+            self.link.name,
+            "simulator" if self.sim_time else "monotonic",
+            self.cfg.control.rate_hz,
+        )
+        if self.flight_log is not None:
+            self.flight_log.header(self._log_header())
+        self._spawn(self._heartbeat_loop(), "heartbeat")
+        self._spawn(self._supervise(), "supervisor")
+        self._spawn(self._housekeeping(), "housekeeping")
+        if not self.sim_time:
+            self._spawn(self._cycle_loop(), "cycle")
+        self.notifier.ready("waiting for autopilot")
+        try:
+            await self._stop.wait()
+        finally:
+            await self._shutdown()
+        if self._fatal is not None:
+            return 1
+        return 0
+
+    def stop(self) -> None:
+        """Ask `run` to return (safe from signal handlers and other tasks)."""
+        self._stop.set()
+
+    def set_desired_height(self, h_d_m: float) -> None:
+        """Change H_d in flight; the planner ramps to it."""
+        if not (math.isfinite(h_d_m) and h_d_m > 0):
+            raise ValueError(f"h_d_m must be positive, got {h_d_m}")
+        from dataclasses import replace
+
+        self.params = replace(self.params, h_d_m=h_d_m)
+        if self.planner is not None:
+            self.planner.set_desired_height(h_d_m)
+
+    def counter_values(self) -> dict[str, int]:
+        """Every counter by dotted name (see docs/service.md)."""
+        out: dict[str, int] = {}
+        out.update({f"link.{k}": v for k, v in self.link.stats.as_dict().items()})
+        out.update({f"codec.{k}": getattr(self.codec.counters, k) for k in _codec_fields()})
+        out.update({f"conn.{k}": v for k, v in self.conn.counters.items()})
+        out.update({f"input.{k}": v for k, v in self.tel.counters.items()})
+        s = self.codec.mav.signing
+        if self.codec.signing_enabled:
+            out.update(
+                {
+                    "signing.good": int(s.goodsig_count),
+                    "signing.bad": int(s.badsig_count),
+                    "signing.unsigned_accepted": int(s.unsigned_count),
+                    "signing.rejected": int(s.reject_count),
+                }
+            )
+        out.update({f"statustext.{k}": getattr(self.texts, k) for k in ("sent", "dropped")})
+        out.update({f"service.{k}": v for k, v in self.counters.items()})
+        return out
+
+    # === setup and shutdown ================================================================
+
+    def _setup_signing(self) -> None:
+        sg = self.cfg.signing
+        if not sg.enabled:
+            return
+        assert sg.key_file is not None
+        key = load_key(sg.key_file)
+        allowed = [getattr(mavlink2, f"MAVLINK_MSG_ID_{n}") for n in sg.allow_unsigned]
+        self.codec.enable_signing(
+            key,
+            link_id=sg.link_id,
+            timestamp=self.signing_state.initial_timestamp(),
+            allow_unsigned_msgids=allowed,
+        )
+        log.info("MAVLink signing on (link id %d)", sg.link_id)
+
+    def _spawn(self, coro: Any, name: str) -> None:
+        task = asyncio.create_task(coro, name=name)
+        task.add_done_callback(self._task_done)
+        self._tasks.append(task)
+
+    def _task_done(self, task: asyncio.Task[Any]) -> None:
+        if task.cancelled():
+            return
+        exc = task.exception()
+        if exc is not None:
+            log.error("task %s failed", task.get_name(), exc_info=exc)
+            self._fatal = exc
+            self._stop.set()
+
+    async def _shutdown(self) -> None:
+        self.notifier.stopping()
+        for t in self._tasks:
+            t.cancel()
+        for t in self._tasks:
+            with contextlib.suppress(asyncio.CancelledError, Exception):
+                await t
+        self._tasks.clear()
+        self.conn.send(heartbeat_message(Health.POWEROFF))
+        await asyncio.sleep(0)
+        if self.codec.signing_enabled:
+            self.signing_state.save(self.codec.signing_timestamp)
+        if self.flight_log is not None:
+            self.flight_log.write(
+                {"type": "counters", "t": self.clock.now(), "counters": self.counter_values()}
+            )
+            self.flight_log.close()
+        await self.conn.close()
+        log.info("stopped")
+
+    # === receive ===========================================================================
+
+    def _on_unlocked_heartbeat(self, msg: MAVLinkMessage, t_rx: float) -> None:
+        src_sys, src_comp = msg.get_srcSystem(), msg.get_srcComponent()
+        ap = self.cfg.autopilot
+        if isinstance(ap.system_id, int) and src_sys != ap.system_id:
+            return
+        if src_comp != ap.component_id:
+            return
+        kind = autopilot_kind(int(msg.autopilot))
+        if kind is None or (ap.type != "auto" and kind.value != ap.type):
+            self.counters["unsupported_autopilot"] += 1
+            if self.counters["unsupported_autopilot"] == 1:
+                log.warning(
+                    "ignoring system %d: autopilot type %d (%s expected)",
+                    src_sys,
+                    int(msg.autopilot),
+                    ap.type,
+                )
+            return
+        self.kind = kind
+        self.vehicle_type = int(msg.type)
+        self.conn.lock(src_sys, src_comp)
+        sid = companion_system_id(self.cfg.identity.system_id, src_sys)
+        self.codec.set_source(sid, self.cfg.identity.component_id)
+        frame = self.cfg.autopilot.setpoint_frame
+        if frame == "auto":
+            self.setpoint_frame = (
+                SetpointFrame.GLOBAL
+                if kind is AutopilotKind.PX4
+                else SetpointFrame.GLOBAL_RELATIVE_ALT
+            )
+        else:
+            self.setpoint_frame = (
+                SetpointFrame.GLOBAL if frame == "global" else SetpointFrame.GLOBAL_RELATIVE_ALT
+            )
+        log.info(
+            "autopilot: %s (MAV_TYPE %d) at system %d component %d; we are %d/%d; "
+            "setpoints in frame %d",
+            kind.value,
+            self.vehicle_type,
+            src_sys,
+            src_comp,
+            sid,
+            self.cfg.identity.component_id,
+            int(self.setpoint_frame),
+        )
+        self._autopilot_seen.set()
+
+    def _on_message(self, msg: MAVLinkMessage, t_rx: float) -> None:
+        mtype = msg.get_type()
+        if mtype == "TIMESYNC":
+            self._on_timesync(msg)
+            return
+        if mtype == "HEARTBEAT":
+            self._on_autopilot_heartbeat(t_rx)
+        reboots = self.tel.reboots
+        self.tel.update(msg, t_rx)
+        if self.tel.reboots != reboots:
+            log.warning("autopilot time went backwards: reboot? reconfiguring")
+            self._reconfigure.set()
+        if mtype == "HEARTBEAT" and self.ownership.engaged:
+            self._update_ownership(self.clock.now(), allow_engage=False)
+
+    def _on_autopilot_heartbeat(self, t_rx: float) -> None:
+        last = self._last_hb_rx
+        if last is not None and t_rx - last > self.limits.heartbeat_timeout_s:
+            log.warning("autopilot heartbeat back after %.1f s", t_rx - last)
+            self._reconfigure.set()
+        self._last_hb_rx = t_rx
+
+    def _on_timesync(self, msg: MAVLinkMessage) -> None:
+        if int(msg.tc1) != 0:
+            return  # an answer to someone's request; we send none
+        ts1 = int(msg.ts1)
+        if self.sim_time:
+            self.clock.set(ts1 * 1e-9)  # type: ignore[union-attr]
+            self._sim_tick(self.clock.now())
+            tc1 = max(1, ts1)
+        else:
+            tc1 = max(1, time.monotonic_ns())
+        self.conn.send(mavlink2.MAVLink_timesync_message(tc1, ts1))
+
+    # === tasks =============================================================================
+
+    async def _heartbeat_loop(self) -> None:
+        period = 1.0 / self.cfg.identity.heartbeat_hz
+        while True:
+            self.conn.send(heartbeat_message(self.health))
+            await asyncio.sleep(period)
+
+    async def _cycle_loop(self) -> None:
+        next_t = self.clock.now()
+        while True:
+            now = self.clock.now()
+            self._tick(now)
+            next_t += self.period_s
+            delay = next_t - self.clock.now()
+            if delay < 0:
+                self.counters["cycle_overruns"] += 1
+                next_t = self.clock.now()
+                delay = 0.0
+            await asyncio.sleep(delay)
+
+    def _sim_tick(self, now: float) -> None:
+        if self._next_cycle_t is None or now >= self._next_cycle_t - 1e-9:
+            self._tick(now)
+            nxt = (self._next_cycle_t if self._next_cycle_t is not None else now) + self.period_s
+            self._next_cycle_t = nxt if nxt > now else now + self.period_s
+
+    async def _housekeeping(self) -> None:
+        """Once a second (wall time): watchdog, flight log, signing state, counters."""
+        wd = self.notifier.watchdog_interval_s
+        period = min(1.0, wd) if wd else 1.0
+        last_save = time.monotonic()
+        last_counters = time.monotonic()
+        while True:
+            await asyncio.sleep(period)
+            wall = time.monotonic()
+            if self._loop_healthy(wall):
+                self.notifier.watchdog()
+            if self.codec.signing_enabled:
+                self.codec.advance_signing_clock(timestamp_now())
+                if wall - last_save >= 10.0:
+                    self.signing_state.save(self.codec.signing_timestamp)
+                    last_save = wall
+            if wall - last_counters >= 10.0:
+                last_counters = wall
+                self._report_counters()
+            if self.flight_log is not None:
+                self.flight_log.flush()
+
+    def _loop_healthy(self, wall: float) -> bool:
+        if self.sim_time:
+            return True  # ticks come from the simulator; this task running is the proof
+        last = self._last_cycle_wall
+        return last is not None and wall - last < max(1.0, 5 * self.period_s)
+
+    def _report_counters(self) -> None:
+        values = self.counter_values()
+        for name, value in values.items():
+            prev = self._counter_snapshot.get(name, 0)
+            if value > prev and _is_problem(name):
+                log.warning("%s: +%d (total %d)", name, value - prev, value)
+        self._counter_snapshot = values
+        if self.flight_log is not None:
+            self.flight_log.write({"type": "counters", "t": self.clock.now(), "counters": values})
+
+    # === supervisor: configure, route, auto start ==========================================
+
+    async def _supervise(self) -> None:
+        await self._autopilot_seen.wait()
+        while True:
+            self._reconfigure.clear()
+            self.configured = False
+            try:
+                await self._configure()
+            except (CommandError, MissionError) as exc:
+                log.warning("configuration failed: %s; retrying", exc)
+                self._say(f"config failed: {exc}", Severity.WARNING)
+                await asyncio.sleep(2.0)
+                continue
+            self.configured = True
+            self.notifier.status("ready")
+            if self.cfg.control.auto_start.enabled and not self._auto_done:
+                self._auto_done = True
+                await self._auto_start()
+            await self._reconfigure.wait()
+
+    async def _configure(self) -> None:
+        failed = []
+        for name, rate in self.cfg.autopilot.streams_hz.model_dump().items():
+            try:
+                await self.commands.set_message_interval(STREAM_IDS[name], float(rate))
+            except CommandError as exc:
+                self.counters["interval_request_failed"] += 1
+                failed.append(name)
+                log.warning("message interval for %s: %s", name, exc)
+        if failed:
+            self._say(f"rate request failed: {','.join(failed)}"[:50], Severity.WARNING)
+        home_id = STREAM_IDS["HOME_POSITION"]
+        said = False
+        while self.tel.home is None or self.tel.position is None:
+            with contextlib.suppress(CommandError):
+                await self.commands.request_message(home_id)
+            if self.tel.home is None or self.tel.position is None:
+                if not said:
+                    said = True
+                    self._say("waiting for home and position")
+                await self._wait_for(
+                    lambda: self.tel.home is not None and self.tel.position is not None, 2.0
+                )
+        self._update_frame()
+        if self.cfg.route.source == "mission":
+            items = await download_mission(
+                self.conn, self.cfg.autopilot.command_timeout_s, self.cfg.autopilot.command_retries
+            )
+            assert self.kind is not None
+            self._mission_geo = mission_waypoints(items, self.kind)
+            n = len(self._mission_geo)
+            if n == 0:
+                self._say("mission has no waypoints", Severity.WARNING)
+            else:
+                self._say(f"mission: {n} waypoints")
+        self._update_frame()
+
+    async def _wait_for(self, pred: Callable[[], bool], timeout_s: float) -> bool:
+        deadline = time.monotonic() + timeout_s
+        while not pred():
+            if time.monotonic() >= deadline:
+                return False
+            await asyncio.sleep(0.05)
+        return True
+
+    async def _auto_start(self) -> None:
+        """Arm, take off and hand over to the route; stops if the pilot changes the mode."""
+        assert self.kind is not None
+        a = self.cfg.control.auto_start
+        alt = a.takeoff_alt_m if a.takeoff_alt_m is not None else self.params.h_d_m
+        hb = self.tel.heartbeat
+        if hb is not None and hb.armed:
+            self._say("auto start: already armed, waiting for pilot")
+            return
+        self._auto_busy = True
+        self._say("auto start")
+        try:
+            if self.kind is AutopilotKind.ARDUPILOT:
+                await self.commands.set_mode(
+                    set_mode_params(self.kind, "guided", self.vehicle_type)
+                )
+                if not await self._wait_for(self._guided, 5.0):
+                    raise CommandError(176, "mode did not change to GUIDED")
+            await self._arm_with_retries(a.arm_timeout_s)
+            if self.kind is AutopilotKind.ARDUPILOT and not self._guided():
+                raise CommandError(176, "mode changed during auto start")
+            home = self.tel.home
+            assert home is not None
+            target = alt if self.kind is AutopilotKind.ARDUPILOT else home.alt_amsl_m + alt
+            await self.commands.takeoff(target)
+            ok = await self._wait_for(
+                lambda: (
+                    self.tel.position is not None and self.tel.position.relative_alt_m >= 0.9 * alt
+                ),
+                a.takeoff_timeout_s,
+            )
+            if not ok:
+                raise CommandError(22, "take-off did not reach its altitude")
+            if self.kind is AutopilotKind.PX4:
+                self._priming = True
+                await asyncio.sleep(a.prestream_s)
+                await self.commands.set_mode(set_mode_params(self.kind, "guided"))
+                if not await self._wait_for(self._guided, 5.0):
+                    raise CommandError(176, "mode did not change to OFFBOARD")
+        except CommandError as exc:
+            self.counters["auto_start_failed"] += 1
+            self._say(f"auto start failed: {exc}"[:50], Severity.ERROR)
+        finally:
+            self._auto_busy = False
+            self._priming = False
+
+    async def _arm_with_retries(self, timeout_s: float) -> None:
+        deadline = time.monotonic() + timeout_s
+        while True:
+            try:
+                await self.commands.arm(True)
+                break
+            except CommandError as exc:
+                if time.monotonic() >= deadline:
+                    raise
+                log.info("arming refused (%s); retrying", exc)
+                await asyncio.sleep(2.0)
+        await self._wait_for(lambda: self.tel.heartbeat is not None and self.tel.heartbeat.armed, 3)
+
+    def _guided(self) -> bool:
+        hb = self.tel.heartbeat
+        return (
+            hb is not None
+            and self.kind is not None
+            and is_guided(self.kind, hb.base_mode, hb.custom_mode)
+        )
+
+    # === the cycle =========================================================================
+
+    def _tick(self, now: float) -> None:
+        """One cycle at service time `now`: ownership, failsafe, planner or hold, setpoint."""
+        self._last_cycle_wall = time.monotonic()
+        self.counters["cycles"] += 1
+        if not self.frame_frozen:
+            self._update_frame()
+        events = self._update_ownership(now, allow_engage=self.configured and not self._auto_busy)
+        assessment = assess(now, self.tel, self.limits, self.required_sensors)
+        verdict, fs_events = self.failsafe.update(now, assessment)
+        commanding = self.ownership.engaged or self._priming
+        if commanding:
+            for e in fs_events:
+                sev = Severity.INFO if e.startswith("resumed") else Severity.CRITICAL
+                self._say(e, sev)
+        result: StepResult | None = None
+        sp: Setpoint | None = None
+        sp_kind: str | None = None
+        if self.ownership.engaged:
+            if verdict.verdict is Verdict.RUN:
+                result = self._step_planner(now)
+                if result is not None:
+                    sp, sp_kind = result.setpoint, "planner"
+                else:
+                    sp, sp_kind = self._hold_setpoint(), "hold"
+            elif verdict.verdict is Verdict.HOLD:
+                sp, sp_kind = self._hold_setpoint(), "hold"
+                self._planner_t = None
+            else:
+                self._planner_t = None
+            if sp_kind == "hold":
+                self.counters["hold_cycles"] += 1
+        elif self._priming and verdict.verdict is not Verdict.STOP:
+            sp, sp_kind = self._hold_setpoint(), "prime"
+        if verdict.verdict is Verdict.RUN and sp_kind != "hold":
+            self._hold = None
+        if sp is not None:
+            self._send_setpoint(sp, now)
+        self.health = self._health(verdict.verdict, sp_kind)
+        self.last_verdict = verdict
+        for sev, text in self.texts.drain(now):
+            self.conn.send(statustext_message(sev, text))
+        if self.flight_log is not None:
+            self.flight_log.write(self._cycle_record(now, verdict, result, sp, sp_kind, events))
+
+    def _health(self, verdict: Verdict, sp_kind: str | None) -> Health:
+        if self.ownership.engaged:
+            if verdict is Verdict.STOP:
+                return Health.EMERGENCY
+            if verdict is Verdict.HOLD or self._planner_failed:
+                return Health.CRITICAL
+            return Health.ACTIVE
+        if self._priming:
+            return Health.ACTIVE
+        return Health.STANDBY if self.configured else Health.BOOT
+
+    def _update_ownership(self, now: float, allow_engage: bool) -> list[str]:
+        hb = self.tel.heartbeat
+        if hb is None or self.kind is None or now - hb.t_rx > self.limits.heartbeat_timeout_s:
+            return []
+        pos = self.tel.position
+        mode = VehicleMode(
+            guided=is_guided(self.kind, hb.base_mode, hb.custom_mode),
+            armed=is_armed(hb.base_mode),
+            high_enough=pos is not None
+            and pos.relative_alt_m >= self.cfg.control.min_engage_height_m,
+            name=mode_name(self.kind, self.vehicle_type, hb.base_mode, hb.custom_mode),
+        )
+        before = self.ownership.state
+        events = self.ownership.update(mode, allow_engage=allow_engage)
+        after = self.ownership.state
+        engaging = before is not OwnState.ENGAGED and after is OwnState.ENGAGED
+        if engaging and not self._engage(now):
+            self.ownership.release("cannot fly: no route")
+        if before is OwnState.ENGAGED and after is not OwnState.ENGAGED:
+            self.counters["released"] += 1
+            self._planner_t = None
+        for e in events:
+            self._say(e, Severity.NOTICE if after is OwnState.ENGAGED else Severity.WARNING)
+        return events
+
+    def _vehicle_state(self) -> VehicleState | None:
+        pos, att = self.tel.position, self.tel.attitude
+        if pos is None or att is None or self.frame is None:
+            return None
+        e, n, u = self.frame.to_enu(GeoPoint(pos.lat_deg, pos.lon_deg, pos.alt_amsl_m))
+        r, p, y = attitude_ned_to_enu(att.roll_rad, att.pitch_rad, att.yaw_rad)
+        return VehicleState(np.array([e, n, u]), r, p, y)
+
+    def _update_frame(self) -> None:
+        """Anchor the local frame at home (until the first take-over freezes it)."""
+        home = self.tel.home
+        if home is None or self.frame_frozen:
+            return
+        origin = GeoPoint(home.lat_deg, home.lon_deg, home.alt_amsl_m)
+        key = (origin, id(self._mission_geo))
+        if key == self._frame_key:
+            return
+        self._frame_key = key
+        self.frame = LocalFrame(origin)
+        r = self.cfg.route
+        if r.source == "config":
+            if r.points is not None:
+                self.route_source_points = np.array(r.points, dtype=np.float64).reshape(-1, 2)
+            else:
+                assert r.points_latlon is not None
+                self.route_source_points = latlon_to_xy(list(r.points_latlon), self.frame)
+        elif self._mission_geo is not None:
+            self.route_source_points = latlon_to_xy(self._mission_geo, self.frame)
+
+    def _engage(self, now: float) -> bool:
+        """Build the planner from the vehicle's position; False if there is nothing to fly."""
+        self._update_frame()
+        state = self._vehicle_state()
+        if state is None or self.route_source_points is None:
+            return False
+        if not self.frame_frozen:
+            self.frame_frozen = True
+            assert self.frame is not None
+            o = self.frame.origin
+            if self.flight_log is not None:
+                self.flight_log.write(
+                    {
+                        "type": "frame",
+                        "t": now,
+                        "origin": [o.lat_deg, o.lon_deg, o.alt_m],
+                        "route": self.route_source_points,
+                    }
+                )
+        self._start_planner(state)
+        return True
+
+    def _start_planner(self, state: VehicleState) -> None:
+        pts = self.route_source_points
+        assert pts is not None
+        here = state.position_enu[:2]
+        remaining = pts[self.next_point :]
+        while len(remaining) and np.hypot(*(remaining[0] - here)) < MIN_BASE_POINT_SPACING_M:
+            remaining = remaining[1:]
+            self.next_point += 1
+        if len(remaining) == 0:
+            self.planner = None
+            self._say("route complete: holding")
+            self._hold = _Hold(state.position_enu.copy(), state.yaw_rad)
+            self.route_finished.set()
+            return
+        arrival = self.cfg.route.arrival_heading_deg
+        route = Route(
+            np.vstack([here, remaining]),
+            state.yaw_rad,
+            None if arrival is None else math.radians(arrival),
+        )
+        self.planner = self.planner_factory(self.params, self.sensors, route, state.position_enu)
+        self._seg_start = here.copy()
+        self._planner_t = None
+        self.counters["planner_starts"] += 1
+        log.info("planner started at %s with %d base points", np.round(here, 2), len(remaining))
+
+    def _step_planner(self, now: float) -> StepResult | None:
+        state = self._vehicle_state()
+        if state is None:
+            return None
+        if self._planner_t is None and self.planner is not None and self.last_setpoint is not None:
+            # resuming after a hold, stop or release: restart if X_d is far from the vehicle
+            gap = float(np.linalg.norm(self.last_setpoint.position_enu - state.position_enu))
+            if gap > self.cfg.control.restart_distance_m:
+                log.info("X_d %.1f m from the vehicle: restarting the planner here", gap)
+                self._start_planner(state)
+        if self.planner is None:
+            return None
+        dt = self.period_s if self._planner_t is None else now - self._planner_t
+        dt = min(max(dt, 0.0), 3.0 * self.period_s)
+        self._planner_t = now
+        ranges = self.tel.range_vector(now, self.limits.sensor_max_age_s)
+        try:
+            result = self.planner.step(state, ranges, dt)
+            self._planner_failed = False
+        except Exception:  # a planner bug must not crash the service: hold instead
+            self._planner_failed = True
+            self.counters["planner_errors"] += 1
+            if self.counters["planner_errors"] <= 5:
+                log.exception("planner step failed; holding")
+            self._say("planner error: holding", Severity.CRITICAL)
+            return None
+        self.last_result = result
+        d = result.diagnostics
+        for e in d.events:
+            self._say(e, Severity.NOTICE)
+        self._advance_progress(state.position_enu[:2])
+        if d.finished and not self._finish_handled:
+            self._finish_handled = True
+            self.route_finished.set()
+            self._on_finish()
+        return result
+
+    def _advance_progress(self, xy: FloatArray) -> None:
+        """Count base points passed (projection past the point, or within 1 m of it)."""
+        pts = self.route_source_points
+        if pts is None or self._seg_start is None:
+            return
+        while self.next_point < len(pts):
+            a, b = self._seg_start, pts[self.next_point]
+            ab = b - a
+            length2 = float(ab @ ab)
+            t = float((xy - a) @ ab) / length2 if length2 > 1e-9 else 1.0
+            if t < 1.0 and np.hypot(*(b - xy)) > 1.0:
+                return
+            self._seg_start = b.copy()
+            self.next_point += 1
+
+    def _on_finish(self) -> None:
+        action = self.cfg.control.on_finish
+        if action == "hold":
+            self._say("route complete: holding")
+            return
+        self._say(f"route complete: {action}")
+        assert self.kind is not None
+        params = set_mode_params(self.kind, action, self.vehicle_type)
+
+        async def change() -> None:
+            try:
+                await self.commands.set_mode(params)
+            except CommandError as exc:
+                self._say(f"{action} refused: {exc}"[:50], Severity.ERROR)
+
+        self._spawn(change(), f"on-finish-{action}")
+
+    def _hold_setpoint(self) -> Setpoint | None:
+        if self._hold is None:
+            state = self._vehicle_state()
+            if state is None:
+                pos = self.tel.position
+                if pos is None or self.frame is None:
+                    return None
+                e, n, u = self.frame.to_enu(GeoPoint(pos.lat_deg, pos.lon_deg, pos.alt_amsl_m))
+                yaw = 0.0 if self.last_setpoint is None else self.last_setpoint.yaw_rad
+                self._hold = _Hold(np.array([e, n, u]), yaw)
+            else:
+                self._hold = _Hold(state.position_enu.copy(), state.yaw_rad)
+        h = self._hold
+        return Setpoint(h.position_enu, np.zeros(3), wrap_pi(h.yaw_rad), 0.0)
+
+    def _send_setpoint(self, sp: Setpoint, now: float) -> None:
+        home = self.tel.home
+        if self.frame is None or home is None or self.setpoint_frame is None:
+            return
+        ts, tc = self.conn.target_system, self.conn.target_component
+        assert ts is not None and tc is not None
+        msg = position_target(
+            sp.position_enu,
+            sp.velocity_enu,
+            sp.yaw_rad,
+            frame=self.frame,
+            mav_frame=self.setpoint_frame,
+            home_alt_amsl_m=home.alt_amsl_m,
+            time_boot_ms=self._boot_ms(now),
+            target_system=ts,
+            target_component=tc,
+        )
+        self.conn.send(msg)
+        self.last_setpoint = sp
+        self.counters["setpoints_sent"] += 1
+
+    def _boot_ms(self, now: float) -> int:
+        return int((now if self.sim_time else now - self._t0_wall) * 1000.0)
+
+    # === output helpers ====================================================================
+
+    def _say(self, text: str, severity: Severity = Severity.INFO) -> None:
+        self.texts.post(self.clock.now(), text, severity)
+
+    def _cycle_record(
+        self,
+        now: float,
+        verdict: Assessment,
+        result: StepResult | None,
+        sp: Setpoint | None,
+        sp_kind: str | None,
+        events: list[str],
+    ) -> dict[str, Any]:
+        state = self._vehicle_state()
+        d = result.diagnostics if result is not None else None
+        return {
+            "type": "cycle",
+            "t": now,
+            "health": self.health.name.lower(),
+            "own": self.ownership.state.value,
+            "verdict": verdict.verdict.value,
+            "reason": verdict.reason,
+            "pos": None if state is None else state.position_enu,
+            "rpy": None if state is None else [state.roll_rad, state.pitch_rad, state.yaw_rad],
+            "ranges": self.tel.range_vector(now, self.limits.sensor_max_age_s),
+            "sp": None
+            if sp is None
+            else {
+                "p": sp.position_enu,
+                "v": sp.velocity_enu,
+                "yaw": sp.yaw_rad,
+                "pitch": sp.pitch_rad,
+            },
+            "sp_kind": sp_kind,
+            "decision": None if d is None else str(d.decision),
+            "mode": None if d is None else str(d.mode),
+            "side": None if d is None else str(d.side),
+            "min_range": None if d is None else d.min_range_m,
+            "finished": bool(d.finished) if d is not None else False,
+            "events": list(events) + (list(d.events) if d is not None else []),
+        }
+
+    def _log_header(self) -> dict[str, Any]:
+        return {
+            "link": self.link.name,
+            "rate_hz": self.cfg.control.rate_hz,
+            "time_source": self.cfg.control.time_source,
+            "sensors": [
+                {
+                    "id": s.sensor_id,
+                    "name": s.name,
+                    "role": s.role.value,
+                    "group": s.group.value,
+                    "boresight_flu": s.boresight_flu,
+                    "min_range_m": s.min_range_m,
+                    "max_range_m": s.max_range_m,
+                }
+                for s in self.sensors.specs
+            ],
+            "planner": self.cfg.planner.model_dump(mode="json"),
+            "route": self.cfg.route.model_dump(mode="json"),
+        }
+
+
+def _codec_fields() -> tuple[str, ...]:
+    from dataclasses import fields
+
+    from companion.service.codec import CodecCounters
+
+    return tuple(f.name for f in fields(CodecCounters))
+
+
+_PROBLEM_PREFIXES = (
+    "codec.garbage",
+    "codec.bad_",
+    "codec.unsigned",
+    "codec.unknown",
+    "codec.truncated",
+    "codec.parser",
+    "conn.other",
+    "conn.handler",
+    "input.rejected",
+    "input.out_of_order",
+    "input.duplicate",
+    "input.time_boot",
+    "input.position_jump",
+    "link.send_dropped",
+    "link.oversized",
+    "link.errors",
+    "signing.bad",
+    "signing.rejected",
+    "service.cycle_overruns",
+    "service.planner_errors",
+    "statustext.dropped",
+)
+
+
+def _is_problem(name: str) -> bool:
+    return name.startswith(_PROBLEM_PREFIXES)
+
+
+# === entry point ===========================================================================
+
+
+def configure_logging(level: str, environ: Mapping[str, str] | None = None) -> None:
+    import os
+
+    env = os.environ if environ is None else environ
+    fmt = "%(levelname)s %(name)s: %(message)s"
+    if "JOURNAL_STREAM" not in env:  # journald adds its own time stamps
+        fmt = "%(asctime)s " + fmt
+    logging.basicConfig(level=level.upper(), format=fmt, stream=sys.stderr, force=True)
+
+
+async def _run_with_signals(service: Service) -> int:
+    loop = asyncio.get_running_loop()
+    for sig in (signal.SIGTERM, signal.SIGINT):
+        with contextlib.suppress(NotImplementedError, RuntimeError):
+            loop.add_signal_handler(sig, service.stop)
+    return await service.run()
+
+
+def main(config_path: Path) -> int:
+    """`companion run --config FILE`: exit 0 on SIGTERM/SIGINT, 2 on a bad config, 1 on error."""
+    try:
+        cfg = load_config(Path(config_path))
+    except ConfigError as exc:
+        print(f"{config_path}: invalid configuration", file=sys.stderr)
+        for line in exc.errors:
+            print(f"  {line}", file=sys.stderr)
+        return 2
+    configure_logging(cfg.logging.level)
+    service = Service(cfg, open_link(cfg.link.spec))
+    return asyncio.run(_run_with_signals(service))

@@ -1,0 +1,67 @@
+"""Planner setpoints (local ENU) -> SET_POSITION_TARGET_GLOBAL_INT.
+
+Position + velocity feed-forward + yaw; acceleration and yaw rate ignored; no force bit.
+Frames: MAV_FRAME_GLOBAL_INT (5, altitude AMSL) or MAV_FRAME_GLOBAL_RELATIVE_ALT_INT (6,
+altitude above the autopilot's current home). Never a terrain frame: ArduCopter rejects
+position+velocity there and, without terrain data, has flown into the ground. The local
+frame is anchored at the home position when the service took over; the relative altitude is
+taken against the autopilot's *current* home altitude, which is what frame 6 means to it.
+"""
+
+from __future__ import annotations
+
+import enum
+
+from companion.geo import LocalFrame
+from companion.planner.frames import enu_to_ned, yaw_enu_to_ned
+from companion.planner.types import FloatArray
+from companion.service.codec import MAVLinkMessage, mavlink2
+
+MAV_FRAME_GLOBAL_INT = 5
+MAV_FRAME_GLOBAL_RELATIVE_ALT_INT = 6
+
+IGNORE_ACCELERATION = 64 | 128 | 256  # POSITION_TARGET_TYPEMASK_AX/AY/AZ_IGNORE
+IGNORE_YAW_RATE = 2048
+TYPE_MASK = IGNORE_ACCELERATION | IGNORE_YAW_RATE
+"""Use position, velocity and yaw; ignore acceleration and yaw rate; no FORCE_SET (512)."""
+
+
+class SetpointFrame(enum.IntEnum):
+    GLOBAL = MAV_FRAME_GLOBAL_INT
+    GLOBAL_RELATIVE_ALT = MAV_FRAME_GLOBAL_RELATIVE_ALT_INT
+
+
+def position_target(
+    position_enu: FloatArray,
+    velocity_enu: FloatArray,
+    yaw_enu_rad: float,
+    *,
+    frame: LocalFrame,
+    mav_frame: SetpointFrame,
+    home_alt_amsl_m: float,
+    time_boot_ms: int,
+    target_system: int,
+    target_component: int,
+) -> MAVLinkMessage:
+    """The SET_POSITION_TARGET_GLOBAL_INT for a setpoint in `frame` (ENU metres, m/s, rad)."""
+    geo = frame.to_geodetic(float(position_enu[0]), float(position_enu[1]), float(position_enu[2]))
+    alt = geo.alt_m if mav_frame is SetpointFrame.GLOBAL else geo.alt_m - home_alt_amsl_m
+    v_ned = enu_to_ned(velocity_enu)
+    return mavlink2.MAVLink_set_position_target_global_int_message(
+        time_boot_ms & 0xFFFFFFFF,
+        target_system,
+        target_component,
+        int(mav_frame),
+        TYPE_MASK,
+        round(geo.lat_deg * 1e7),
+        round(geo.lon_deg * 1e7),
+        float(alt),
+        float(v_ned[0]),
+        float(v_ned[1]),
+        float(v_ned[2]),
+        0.0,
+        0.0,
+        0.0,
+        float(yaw_enu_to_ned(yaw_enu_rad)),
+        0.0,
+    )

@@ -1,0 +1,316 @@
+"""The input cache: the autopilot's latest heartbeat, attitude, position, home and ranges.
+
+Every accepted input carries `t_rx`, the service clock's time when it was received, so the
+loop can judge ages. Inputs are validated before they are stored: NaN/inf or out-of-range
+fields are rejected and counted and never reach the planner; the previous (older) value stays
+and simply ages, which is what trips the stale-input failsafe. Units are converted here, at the
+edge: centimetres to metres, degrees*1e7 to degrees, millimetres to metres.
+
+DISTANCE_SENSOR readings are mapped to the sensor table by id, and the message's orientation
+must agree with the configured one (within 5 degrees; MAV_SENSOR_ROTATION_CUSTOM is checked
+through its quaternion when one is given). A reading of 0, below the minimum, at/over the
+maximum or 65535 means "nothing detected" and is stored as 0.0: a fresh reading of nothing is
+valid data. NaN in `range_vector` is reserved for a missing or stale reading.
+
+time_boot_ms ordering: an older stamp than the last one (reordered or duplicated datagrams)
+is dropped; a jump back of more than REBOOT_BACKSTEP_MS is an autopilot reboot, which resets
+the cache and is reported via `reboots`.
+"""
+
+from __future__ import annotations
+
+import math
+from collections import Counter
+from dataclasses import dataclass
+
+import numpy as np
+
+from companion.planner.sensors import (
+    MAV_SENSOR_ROTATION_CUSTOM,
+    SensorTable,
+    boresight_from_mav_orientation,
+    boresight_from_quaternion_frd,
+)
+from companion.planner.types import FloatArray
+from companion.service.codec import MAVLinkMessage
+
+REBOOT_BACKSTEP_MS = 3000
+ORIENTATION_TOLERANCE_COS = math.cos(math.radians(5.0))
+UINT16_MAX = 65535
+MAV_AUTOPILOT_INVALID = 8
+MAV_TYPE_GCS = 6
+MAV_TYPE_ONBOARD_CONTROLLER = 18
+
+
+@dataclass(frozen=True, slots=True)
+class Heartbeat:
+    """An autopilot HEARTBEAT. t_rx: service clock seconds."""
+
+    autopilot: int
+    vehicle_type: int
+    base_mode: int
+    custom_mode: int
+    system_status: int
+    t_rx: float
+
+    @property
+    def armed(self) -> bool:
+        return bool(self.base_mode & 128)  # MAV_MODE_FLAG_SAFETY_ARMED
+
+
+@dataclass(frozen=True, slots=True)
+class Attitude:
+    """ATTITUDE: FRD body in NED, radians (yaw clockwise from north)."""
+
+    roll_rad: float
+    pitch_rad: float
+    yaw_rad: float
+    time_boot_ms: int
+    t_rx: float
+
+
+@dataclass(frozen=True, slots=True)
+class Position:
+    """GLOBAL_POSITION_INT: degrees, metres AMSL / above home, velocity NED m/s."""
+
+    lat_deg: float
+    lon_deg: float
+    alt_amsl_m: float
+    relative_alt_m: float
+    velocity_ned_mps: tuple[float, float, float]
+    time_boot_ms: int
+    t_rx: float
+
+
+@dataclass(frozen=True, slots=True)
+class Home:
+    """HOME_POSITION: degrees and metres AMSL."""
+
+    lat_deg: float
+    lon_deg: float
+    alt_amsl_m: float
+    t_rx: float
+
+
+@dataclass(frozen=True, slots=True)
+class RangeReading:
+    """One sensor's latest reading: metres, 0.0 = nothing detected."""
+
+    distance_m: float
+    time_boot_ms: int
+    t_rx: float
+
+
+def valid_lat_lon(lat_deg: float, lon_deg: float) -> bool:
+    """Finite, in range, and not the 0/0 that autopilots send before a fix."""
+    return (
+        math.isfinite(lat_deg)
+        and math.isfinite(lon_deg)
+        and -90.0 <= lat_deg <= 90.0
+        and -180.0 <= lon_deg <= 180.0
+        and not (lat_deg == 0.0 and lon_deg == 0.0)
+    )
+
+
+def _haversine_m(lat1: float, lon1: float, lat2: float, lon2: float) -> float:
+    p1, p2 = math.radians(lat1), math.radians(lat2)
+    dp, dl = p2 - p1, math.radians(lon2 - lon1)
+    a = math.sin(dp / 2) ** 2 + math.cos(p1) * math.cos(p2) * math.sin(dl / 2) ** 2
+    return 2.0 * 6_371_000.0 * math.asin(min(1.0, math.sqrt(a)))
+
+
+class Telemetry:
+    """Latest validated inputs from one autopilot, with receipt times and counters.
+
+    `counters` (a Counter of names) records every rejection and notable input; the names are
+    stable and appear in the flight log and docs/service.md.
+    """
+
+    def __init__(
+        self, sensors: SensorTable, *, max_speed_mps: float = 40.0, jump_accept_s: float = 1.0
+    ) -> None:
+        self.sensors = sensors
+        self.max_speed_mps = max_speed_mps
+        self.jump_accept_s = jump_accept_s
+        self.counters: Counter[str] = Counter()
+        self._expected_boresight = [s.boresight_frd for s in sensors.specs]
+        self._boresight_cache: dict[int, FloatArray | None] = {}
+        self.reboots = 0
+        self.reset()
+
+    def reset(self) -> None:
+        """Forget everything but the counters (autopilot reboot or a new autopilot)."""
+        self.heartbeat: Heartbeat | None = None
+        self.attitude: Attitude | None = None
+        self.position: Position | None = None
+        self.home: Home | None = None
+        self.ranges: list[RangeReading | None] = [None] * len(self.sensors)
+        self._last_boot_ms: dict[str, int] = {}
+        self._jump_since: float | None = None
+
+    # -- dispatch ---------------------------------------------------------------------------
+
+    def update(self, msg: MAVLinkMessage, t_rx: float) -> str | None:
+        """Store `msg` if it is valid; returns what was updated ("ATTITUDE", ...) or None."""
+        kind = msg.get_type()
+        handler = _HANDLERS.get(kind)
+        if handler is None:
+            return None
+        return kind if handler(self, msg, t_rx) else None
+
+    def _reject(self, what: str) -> bool:
+        self.counters[f"rejected_{what}"] += 1
+        return False
+
+    def _in_order(self, key: str, time_boot_ms: int) -> bool:
+        """False for a stale or duplicate stamp; a big step back is a reboot (accepted)."""
+        if time_boot_ms == 0:  # some senders do not stamp
+            return True
+        last = self._last_boot_ms.get(key)
+        if last is not None and time_boot_ms <= last:
+            if last - time_boot_ms > REBOOT_BACKSTEP_MS:
+                self.counters["time_boot_backwards"] += 1
+                self.reboots += 1
+                counters, reboots = self.counters, self.reboots
+                self.reset()
+                self.counters, self.reboots = counters, reboots
+            else:
+                self.counters["out_of_order" if time_boot_ms < last else "duplicate"] += 1
+                return False
+        self._last_boot_ms[key] = time_boot_ms
+        return True
+
+    # -- messages ---------------------------------------------------------------------------
+
+    def _heartbeat(self, msg: MAVLinkMessage, t_rx: float) -> bool:
+        self.heartbeat = Heartbeat(
+            int(msg.autopilot),
+            int(msg.type),
+            int(msg.base_mode),
+            int(msg.custom_mode),
+            int(msg.system_status),
+            t_rx,
+        )
+        return True
+
+    def _attitude(self, msg: MAVLinkMessage, t_rx: float) -> bool:
+        r, p, y = float(msg.roll), float(msg.pitch), float(msg.yaw)
+        rates = (float(msg.rollspeed), float(msg.pitchspeed), float(msg.yawspeed))
+        if not all(math.isfinite(v) for v in (r, p, y, *rates)):
+            return self._reject("attitude_nonfinite")
+        if abs(r) > math.pi + 1e-3 or abs(p) > math.pi / 2 + 1e-3 or abs(y) > 2 * math.pi + 1e-3:
+            return self._reject("attitude_range")
+        if not self._in_order("ATTITUDE", int(msg.time_boot_ms)):
+            return False
+        self.attitude = Attitude(r, p, y, int(msg.time_boot_ms), t_rx)
+        return True
+
+    def _global_position(self, msg: MAVLinkMessage, t_rx: float) -> bool:
+        lat, lon = msg.lat * 1e-7, msg.lon * 1e-7
+        alt, rel = msg.alt * 1e-3, msg.relative_alt * 1e-3
+        if not valid_lat_lon(lat, lon):
+            return self._reject("position_range")
+        if not (-1_000.0 <= alt <= 50_000.0 and -10_000.0 <= rel <= 50_000.0):
+            return self._reject("position_range")
+        if not self._in_order("GLOBAL_POSITION_INT", int(msg.time_boot_ms)):
+            return False
+        last = self.position
+        if last is not None:
+            dt = max((msg.time_boot_ms - last.time_boot_ms) * 1e-3, t_rx - last.t_rx, 0.05)
+            dist = _haversine_m(last.lat_deg, last.lon_deg, lat, lon)
+            dist = math.hypot(dist, alt - last.alt_amsl_m)
+            if dist > self.max_speed_mps * dt:
+                if self._jump_since is None:
+                    self._jump_since = t_rx
+                if t_rx - self._jump_since < self.jump_accept_s:
+                    self._last_boot_ms["GLOBAL_POSITION_INT"] = last.time_boot_ms
+                    return self._reject("position_jump")
+                self.counters["position_jump_accepted"] += 1
+        self._jump_since = None
+        vel = (msg.vx * 0.01, msg.vy * 0.01, msg.vz * 0.01)
+        self.position = Position(lat, lon, alt, rel, vel, int(msg.time_boot_ms), t_rx)
+        return True
+
+    def _home(self, msg: MAVLinkMessage, t_rx: float) -> bool:
+        lat, lon, alt = msg.latitude * 1e-7, msg.longitude * 1e-7, msg.altitude * 1e-3
+        if not valid_lat_lon(lat, lon) or not -1_000.0 <= alt <= 50_000.0:
+            return self._reject("home_range")
+        self.home = Home(lat, lon, alt, t_rx)
+        return True
+
+    def _msg_boresight(self, orientation: int, quaternion: list[float]) -> FloatArray | None:
+        if orientation == MAV_SENSOR_ROTATION_CUSTOM:
+            q = np.asarray(quaternion, dtype=np.float64)
+            if q.shape != (4,) or not np.all(np.isfinite(q)) or np.linalg.norm(q) < 1e-6:
+                return None
+            return boresight_from_quaternion_frd(q)
+        if orientation not in self._boresight_cache:
+            try:
+                self._boresight_cache[orientation] = boresight_from_mav_orientation(orientation)
+            except ValueError:
+                self._boresight_cache[orientation] = None
+        return self._boresight_cache[orientation]
+
+    def _distance_sensor(self, msg: MAVLinkMessage, t_rx: float) -> bool:
+        index = self.sensors.index_of_id.get(int(msg.id))
+        if index is None:
+            return self._reject("sensor_unknown_id")
+        orientation = int(msg.orientation)
+        boresight = self._msg_boresight(orientation, list(getattr(msg, "quaternion", [])))
+        if boresight is None:
+            if orientation != MAV_SENSOR_ROTATION_CUSTOM:
+                return self._reject("sensor_orientation_unknown")
+            self.counters["sensor_orientation_unverified"] += 1
+        elif float(boresight @ self._expected_boresight[index]) < ORIENTATION_TOLERANCE_COS:
+            return self._reject("sensor_orientation_mismatch")
+        if not self._in_order(f"DISTANCE_SENSOR.{index}", int(msg.time_boot_ms)):
+            return False
+        spec = self.sensors.specs[index]
+        lo, hi = spec.min_range_m, spec.max_range_m
+        mn, mx, cur = int(msg.min_distance), int(msg.max_distance), int(msg.current_distance)
+        if 0 < mx < UINT16_MAX and mn < mx:  # the sender's own limits, when it gives sane ones
+            lo, hi = max(lo, mn * 0.01), min(hi, mx * 0.01)
+        d = cur * 0.01
+        if cur == 0 or cur == UINT16_MAX:
+            self.counters["range_none"] += 1
+            d = 0.0
+        elif d < lo:
+            self.counters["range_below_min"] += 1
+            d = 0.0
+        elif d >= hi:
+            self.counters["range_at_max"] += 1
+            d = 0.0
+        self.ranges[index] = RangeReading(d, int(msg.time_boot_ms), t_rx)
+        return True
+
+    # -- queries ----------------------------------------------------------------------------
+
+    def range_vector(
+        self, now: float, max_age_s: float, out: FloatArray | None = None
+    ) -> FloatArray:
+        """Ranges aligned with the sensor table, metres; 0 = nothing, NaN = missing/stale."""
+        r = out if out is not None else np.empty(len(self.ranges))
+        for i, reading in enumerate(self.ranges):
+            r[i] = (
+                reading.distance_m
+                if reading is not None and now - reading.t_rx <= max_age_s
+                else math.nan
+            )
+        return r
+
+    def stale_sensors(self, now: float, max_age_s: float) -> list[int]:
+        """Indices (table order) of sensors with no reading within max_age_s."""
+        return [
+            i
+            for i, reading in enumerate(self.ranges)
+            if reading is None or now - reading.t_rx > max_age_s
+        ]
+
+
+_HANDLERS = {
+    "HEARTBEAT": Telemetry._heartbeat,
+    "ATTITUDE": Telemetry._attitude,
+    "GLOBAL_POSITION_INT": Telemetry._global_position,
+    "HOME_POSITION": Telemetry._home,
+    "DISTANCE_SENSOR": Telemetry._distance_sensor,
+}
