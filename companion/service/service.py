@@ -519,16 +519,20 @@ class Service:
             self._say(f"rate request failed: {','.join(failed)}"[:50], Severity.WARNING)
         home_id = STREAM_IDS["HOME_POSITION"]
         said = False
-        while self.tel.home is None or self.tel.position is None:
-            with contextlib.suppress(CommandError):
+        while True:
+            try:
                 await self.commands.request_message(home_id)
-            if self.tel.home is None or self.tel.position is None:
-                if not said:
-                    said = True
-                    self._say("waiting for home and position")
-                await self._wait_for(
-                    lambda: self.tel.home is not None and self.tel.position is not None, 2.0
-                )
+            except CommandError as exc:
+                self.counters["home_request_failed"] += 1
+                log.warning("HOME_POSITION request: %s", exc)
+            ready = await self._wait_for(
+                lambda: self.tel.home is not None and self.tel.position is not None, 2.0
+            )
+            if ready:
+                break
+            if not said:
+                said = True
+                self._say("waiting for home and position")
         self._update_frame()
         if self.cfg.route.source == "mission":
             items = await download_mission(
@@ -774,6 +778,7 @@ class Service:
         self.planner = self.planner_factory(self.params, self.sensors, route, state.position_enu)
         self._seg_start = here.copy()
         self._planner_t = None
+        self.last_setpoint = None  # X_d starts at the vehicle: nothing to compare on resume
         self.counters["planner_starts"] += 1
         log.info("planner started at %s with %d base points", np.round(here, 2), len(remaining))
 
