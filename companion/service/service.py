@@ -555,6 +555,15 @@ class Service:
             await asyncio.sleep(0.05)
         return True
 
+    async def _sleep_service_time(self, duration_s: float) -> None:
+        """Sleep on the service clock (simulated time in sim mode)."""
+        if not self.sim_time:
+            await asyncio.sleep(duration_s)
+            return
+        end = self.clock.now() + duration_s
+        while self.clock.now() < end:
+            await asyncio.sleep(0.001)
+
     async def _auto_start(self) -> None:
         """Arm, take off and hand over to the route; stops if the pilot changes the mode."""
         assert self.kind is not None
@@ -590,7 +599,7 @@ class Service:
                 raise CommandError(22, "take-off did not reach its altitude")
             if self.kind is AutopilotKind.PX4:
                 self._priming = True
-                await asyncio.sleep(a.prestream_s)
+                await self._sleep_service_time(a.prestream_s)
                 await self.commands.set_mode(set_mode_params(self.kind, "guided"))
                 if not await self._wait_for(self._guided, 5.0):
                     raise CommandError(176, "mode did not change to OFFBOARD")
