@@ -9,6 +9,7 @@ and records everything it receives with its receipt time.
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import math
 import time
 from dataclasses import dataclass, field
@@ -121,10 +122,8 @@ class FakeAutopilot:
     async def stop(self) -> None:
         if self._task is not None:
             self._task.cancel()
-            try:
+            with contextlib.suppress(asyncio.CancelledError):
                 await self._task
-            except asyncio.CancelledError:
-                pass
         await self.link.close()
 
     # -- sending ----------------------------------------------------------------------------

@@ -314,7 +314,7 @@ async def test_mission_route_skips_ardupilot_home() -> None:
 
 async def test_px4_auto_start_streams_before_offboard() -> None:
     cfg = make_config(control={"auto_start": {"enabled": True, "prestream_s": 0.3}})
-    async with running(cfg=cfg, kind="px4", armed=False, alt_amsl=HOME[2]) as (svc, ap, box):
+    async with running(cfg=cfg, kind="px4", armed=False, alt_amsl=HOME[2]) as (_svc, ap, box):
         await until(lambda: len(box.made) == 1, 8.0)
         set_modes = [c for c in ap.commands if int(c.command) == 176]
         assert len(set_modes) == 1 and int(set_modes[0].param2) == 6
@@ -329,7 +329,7 @@ async def test_px4_auto_start_streams_before_offboard() -> None:
 
 async def test_ardupilot_auto_start_guided_arm_takeoff() -> None:
     cfg = make_config(control={"auto_start": {"enabled": True}})
-    async with running(cfg=cfg, armed=False, alt_amsl=HOME[2]) as (svc, ap, box):
+    async with running(cfg=cfg, armed=False, alt_amsl=HOME[2]) as (_svc, ap, box):
         await until(lambda: len(box.made) == 1, 8.0)
         order = [int(c.command) for c in ap.commands if int(c.command) in (176, 400, 22)]
         assert order == [176, 400, 22]
@@ -339,7 +339,7 @@ async def test_ardupilot_auto_start_guided_arm_takeoff() -> None:
 async def test_arming_refused_then_accepted_is_retried() -> None:
     cfg = make_config(control={"auto_start": {"enabled": True, "arm_timeout_s": 10}})
     async with running(cfg=cfg, armed=False, alt_amsl=HOME[2], command_results={400: 4}) as (
-        svc,
+        _svc,
         ap,
         box,
     ):
