@@ -339,9 +339,9 @@ def _expected(err: dict[str, Any]) -> str:
         return "a value (required key)"
     if kind == "extra_forbidden":
         return "no such key (misspelt or not in this section)"
-    for prefix in ("Input should be ", "Value error, ", "Assertion failed, "):
-        if msg.startswith(prefix):
-            msg = msg[len(prefix) :]
+    if kind in ("value_error", "assertion_error"):
+        return "a valid value: " + msg.split(", ", 1)[-1]
+    msg = msg.removeprefix("Input should be ")
     if kind in ("greater_than", "greater_than_equal", "less_than", "less_than_equal"):
         return "a number " + msg
     return msg
