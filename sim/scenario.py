@@ -63,6 +63,7 @@ class Scenario(BaseModel):
     route: RouteConfig
     vehicle: VehicleModelConfig = Field(default_factory=VehicleModelConfig)
     sensors: Annotated[list[SensorConfig], Field(min_length=2)]
+    """The sensor table; in the file either a list or the name of a YAML file holding one."""
     planner: PlannerConfig = Field(default_factory=PlannerConfig)
     expect: Expectation = Field(default_factory=Expectation)
     mavlink: dict[str, Any] | None = None
@@ -108,6 +109,13 @@ def load_scenario(path: Path | str) -> Scenario:
         raise ScenarioError(f"{p}: not valid YAML: {exc}") from exc
     if not isinstance(data, dict):
         raise ScenarioError(f"{p}: expected a mapping at the top level")
+    if isinstance(data.get("sensors"), str):
+        # `sensors: FILE` names a YAML list of sensors, relative to the scenario file.
+        sensors_path = p.parent / data["sensors"]
+        try:
+            data["sensors"] = yaml.safe_load(sensors_path.read_text(encoding="utf-8"))
+        except (OSError, yaml.YAMLError) as exc:
+            raise ScenarioError(f"{p}: sensors: cannot read {sensors_path}: {exc}") from exc
     try:
         scenario = Scenario.model_validate(data)
         scenario.sensor_table()  # cross-field checks (duplicate ids, missing surface sensors)

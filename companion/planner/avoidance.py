@@ -41,7 +41,8 @@ from companion.planner.path import Path, Polyline, project
 from companion.planner.route import Route
 from companion.planner.types import FloatArray, PathMode, Side
 
-SIDE_SWITCH_PENALTY_M = 50.0
+SIDE_SWITCH_PENALTY_M = 4.0
+DEAD_END_PENALTY_M = 100.0
 LESS_FREE_SIDE_PENALTY_M = 4.0
 MAX_LATERAL_OFFSET_M = 40.0
 ACROSS_M = 0.5
@@ -186,7 +187,7 @@ def plan_detour(route: Route, request: AvoidanceRequest, params: PlannerParams) 
             if request.committed_side is not Side.NONE and side is not request.committed_side:
                 cost += SIDE_SWITCH_PENALTY_M
             if side is request.avoid_side:
-                cost += 2.0 * SIDE_SWITCH_PENALTY_M
+                cost += DEAD_END_PENALTY_M
             less_free = Side.LEFT if request.free_left_m < request.free_right_m else Side.RIGHT
             if request.free_left_m != request.free_right_m and side is less_free:
                 cost += LESS_FREE_SIDE_PENALTY_M
@@ -240,14 +241,14 @@ def _with_transitions(
     for cost, w, side in candidates:
         # A cubic S-curve shifting sideways by c over a length L curves at about 6 c / L^2.
         shortest = max(1.0, 1.1 * math.sqrt(6.0 * abs(w - l0) * params.min_turn_radius_m))
-        hold_start = s_a - d_m
-        if hold_start > s0 + shortest:
-            out.append((cost, w, side, hold_start))
-        for i, factor in enumerate(TRANSITION_FACTORS):
-            at = s0 + factor * shortest
-            if at < hold_start:
-                continue
-            out.append((cost + 0.1 * i, w, side, at))
+        # Reach the offset D_m before the window, or at its start (the clearance check of
+        # the whole curve decides whether cutting in diagonally is safe), or a few S-curve
+        # lengths ahead; later transitions cost a little more.
+        options = [s_a - d_m, s_a - 0.5 * d_m, s_a]
+        options += [s0 + factor * shortest for factor in TRANSITION_FACTORS]
+        for i, at in enumerate(options):
+            if at > s0 + 0.5:
+                out.append((cost + 0.1 * i, w, side, at))
     out.sort(key=lambda c: (c[0], c[1]))
     return out
 
@@ -266,7 +267,11 @@ def _build(
     """The Bezier chain of one candidate: reach offset w at route position hold_start, hold
     it to s_b + D_m, then rejoin the route; plus the route tail it rejoins."""
     hold_end = max(s_b + d_m, hold_start + params.min_turn_radius_m)
-    ret = max(2.5 * abs(w), 2.0 * params.min_turn_radius_m, 4.0)
+    ret = max(
+        1.3 * math.sqrt(6.0 * abs(w) * params.min_turn_radius_m),
+        2.0 * params.min_turn_radius_m,
+        4.0,
+    )
     rejoin_s = hold_end + ret
     # Rejoin no later than the next base point still ahead of the hold, and never past the end.
     next_base = route.base_s[route.base_s > hold_end + 1e-6]

@@ -1,0 +1,70 @@
+"""Every scenario in config/scenarios flown in process meets the outcome its `expect:` states."""
+
+import math
+from pathlib import Path
+
+import pytest
+
+from sim import metrics as metrics_mod
+from sim.closed_loop import run
+from sim.scenario import load_scenario
+from sim.world import World
+
+SCENARIOS = sorted((Path(__file__).parent.parent / "config" / "scenarios").glob("*.yaml"))
+
+
+@pytest.fixture(scope="module", params=SCENARIOS, ids=[p.stem for p in SCENARIOS])
+def flown(request: pytest.FixtureRequest) -> tuple:  # type: ignore[type-arg]
+    path: Path = request.param
+    scenario = load_scenario(path)
+    world = World.from_config(scenario.world, path.parent)
+    result = run(scenario, world)
+    m = metrics_mod.compute(
+        result.trace,
+        scenario.route_obj(),
+        world,
+        scenario.planner.h_d_m,
+        scenario.planner.v_d_mps,
+        result.finished,
+    )
+    return scenario, m, result
+
+
+@pytest.mark.slow
+def test_expected_outcome(flown: tuple) -> None:  # type: ignore[type-arg]
+    scenario, m, _ = flown
+    e = scenario.expect
+    if e.reached_goal is not None:
+        assert m["reached_goal"] is e.reached_goal
+    if e.collisions is not None:
+        assert m["collisions"] == e.collisions
+    if e.min_clearance_m is not None:
+        assert m["min_clearance_m"] >= e.min_clearance_m
+    if e.max_abs_pitch_rad is not None:
+        assert m["max_abs_pitch_rad"] <= e.max_abs_pitch_rad + 1e-9
+    if e.max_height_error_m is not None:
+        assert m["max_height_error_m"] <= e.max_height_error_m
+    if e.max_speed_error_mps is not None:
+        assert m["max_speed_error_mps"] <= e.max_speed_error_mps
+    if e.final_heading_deg is not None:
+        assert m["final_heading_error_rad"] <= math.radians(1.0)
+    for feature, side in e.passes.items():
+        assert m["passed_side"][feature] == side
+    for feature in e.unchanged_over:
+        assert m["max_lateral_deviation_m"][feature] < e.max_lateral_deviation_over_m
+    for decision, count in e.min_decisions.items():
+        assert m["decisions"][decision] >= count
+
+
+@pytest.mark.slow
+def test_reference_point_keeps_its_speed(flown: tuple) -> None:  # type: ignore[type-arg]
+    """X_d moves at the reference speed every cycle (the planner's own v_ref schedule)."""
+    _, m, _ = flown
+    assert m["max_speed_error_mps"] <= 0.02
+
+
+@pytest.mark.slow
+def test_never_closer_than_d_min(flown: tuple) -> None:  # type: ignore[type-arg]
+    scenario, m, _ = flown
+    assert m["min_clearance_m"] >= scenario.planner.d_min_m
+    assert m["collisions"] == 0
