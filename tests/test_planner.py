@@ -1,0 +1,127 @@
+"""Planner.step: determinism, terrain following on flat ground, controls and bad input."""
+
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+
+from companion.planner import ArcMethod, Decision, Planner, PlannerParams, Route, VehicleState
+from companion.tuning import SensorConfig, sensor_table
+
+SENSORS = sensor_table(
+    [
+        SensorConfig.model_validate(s)
+        for s in yaml.safe_load(
+            (Path(__file__).parent.parent / "config/sensors/paper-11.yaml").read_text()
+        )
+    ]
+)
+
+
+def flat_ranges(height: float) -> np.ndarray:
+    """What the paper's sensors read at `height` over flat ground with nothing around."""
+    r = SENSORS.max_range_m.copy()
+    for i in SENSORS.surface_index.values():
+        r[i] = height / math.cos(math.pi / 4)
+    return r
+
+
+def make(params: PlannerParams | None = None, z: float = 2.0) -> Planner:
+    route = Route(np.array([[0.0, 0.0], [40.0, 0.0]]), 0.0, 0.0)
+    return Planner(params or PlannerParams(), SENSORS, route, np.array([0.0, 0.0, z]))
+
+
+def fly(planner: Planner, cycles: int, height: float = 2.0) -> list:  # type: ignore[type-arg]
+    out = []
+    state = VehicleState(np.array([0.0, 0.0, height]), 0.0, 0.0, 0.0)
+    for _ in range(cycles):
+        res = planner.step(state, flat_ranges(height), 0.05)
+        out.append(res)
+        sp = res.setpoint
+        state = VehicleState(sp.position_enu, 0.0, sp.pitch_rad, sp.yaw_rad)
+    return out
+
+
+def test_same_input_same_output() -> None:
+    a, b = fly(make(), 100), fly(make(), 100)
+    for ra, rb in zip(a, b, strict=True):
+        np.testing.assert_array_equal(ra.setpoint.position_enu, rb.setpoint.position_enu)
+        assert ra.diagnostics.decision == rb.diagnostics.decision
+
+
+def test_flat_ground_flies_level_at_v_d() -> None:
+    results = fly(make(), 200)
+    last = results[-1]
+    assert last.diagnostics.decision is Decision.VERTICAL
+    assert last.setpoint.pitch_rad == pytest.approx(0.0, abs=1e-12)
+    assert last.setpoint.position_enu[2] == pytest.approx(2.0, abs=1e-9)
+    assert last.diagnostics.speed_ref_mps == pytest.approx(1.0)
+    np.testing.assert_allclose(last.setpoint.velocity_enu, [1.0, 0.0, 0.0], atol=1e-9)
+    # Started from rest, ramped at accel_max, then 1 m/s: 10 s -> 10 m - v^2 / (2 a).
+    assert last.setpoint.position_enu[0] == pytest.approx(10.0 - 1.0, abs=0.06)
+
+
+def test_reaches_the_goal_and_stops() -> None:
+    results = fly(make(), 1000)
+    done = [r for r in results if r.diagnostics.finished]
+    assert done, "never finished"
+    np.testing.assert_allclose(done[0].setpoint.position_enu[:2], [40.0, 0.0], atol=0.05)
+    assert done[0].diagnostics.speed_ref_mps == 0.0
+
+
+def test_paper_arc_method_agrees_with_exact() -> None:
+    exact = fly(make(PlannerParams(arc_method=ArcMethod.EXACT)), 300)
+    paper = fly(make(PlannerParams(arc_method=ArcMethod.PAPER, paper_delta=1e-5)), 300)
+    gap = np.linalg.norm(exact[-1].setpoint.position_enu - paper[-1].setpoint.position_enu)
+    assert gap < 0.05  # the search overshoots by up to |B'| delta per cycle
+
+
+def test_higher_h_d_ramps_up_within_phi_max() -> None:
+    planner = make()
+    fly(planner, 40)
+    planner.set_desired_height(4.0)
+    results = fly(planner, 5)
+    assert all(0 < r.setpoint.pitch_rad <= 0.6 for r in results)
+    with pytest.raises(ValueError, match="H_d"):
+        planner.set_desired_height(float("nan"))
+
+
+def test_replace_route_keeps_position_and_heading() -> None:
+    planner = make()
+    last = fly(planner, 60)[-1]
+    planner.replace_route(np.array([[30.0, 20.0]]), math.pi / 2)
+    assert planner.path.heading(0.0) == pytest.approx(last.setpoint.yaw_rad, abs=1e-9)
+    np.testing.assert_allclose(planner.path.point(0.0), last.setpoint.position_enu[:2], atol=1e-9)
+
+
+@pytest.mark.parametrize(
+    ("ranges", "dt", "match"),
+    [
+        (np.zeros(3), 0.05, "expected 11 ranges"),
+        (flat_ranges(2.0), 0.0, "dt_s"),
+        (flat_ranges(2.0), float("nan"), "dt_s"),
+    ],
+)
+def test_bad_input_is_refused(ranges: np.ndarray, dt: float, match: str) -> None:
+    planner = make()
+    state = VehicleState(np.array([0.0, 0.0, 2.0]), 0.0, 0.0, 0.0)
+    with pytest.raises(ValueError, match=match):
+        planner.step(state, ranges, dt)
+
+
+def test_nan_ranges_mean_nothing_detected_and_hold_altitude() -> None:
+    planner = make()
+    state = VehicleState(np.array([0.0, 0.0, 2.0]), 0.0, 0.0, 0.0)
+    res = planner.step(state, np.full(11, np.nan), 0.05)
+    assert not res.diagnostics.surface_valid
+    assert res.setpoint.pitch_rad == 0.0
+    with pytest.raises(ValueError, match="finite"):
+        VehicleState(np.array([0.0, np.nan, 2.0]), 0.0, 0.0, 0.0)
+
+
+def test_start_far_from_the_route_is_refused() -> None:
+    route = Route(np.array([[0.0, 0.0], [40.0, 0.0]]))
+    with pytest.raises(ValueError, match="prepend the vehicle position"):
+        Planner(PlannerParams(), SENSORS, route, np.array([5.0, 5.0, 2.0]))
