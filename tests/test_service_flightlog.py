@@ -1,0 +1,65 @@
+"""Flight log: written per cycle by the service, read back into arrays."""
+
+from __future__ import annotations
+
+import asyncio
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from companion.service import Service, memory_pair
+from companion.service.flightlog import FlightLogWriter, read_flight_log
+from companion.service.notify import SystemdNotifier
+from tests.service_fakes import FakeAutopilot, PlannerBox, make_config
+
+pytestmark = pytest.mark.timeout(20)
+
+
+def test_writer_rotates_prunes_and_reader_tolerates_torn_lines(tmp_path: Path) -> None:
+    w = FlightLogWriter(tmp_path, max_bytes=2_000, keep_files=2)
+    w.header({"sensors": [{"id": 0}, {"id": 1}]})
+    for i in range(100):
+        w.write({"type": "cycle", "t": i * 0.05, "pos": [i, 0, math.nan], "ranges": [1.0, None]})
+        if i % 10 == 0:
+            w.flush()
+    w.close()
+    files = sorted(tmp_path.glob("flight-*.jsonl"))
+    assert len(files) == 2
+    last = max(files, key=lambda p: p.stat().st_mtime)
+    with last.open("a") as f:
+        f.write('{"type": "cycle", "t": 9')  # torn by a crash
+    log = read_flight_log(last)
+    assert log.header["sensors"] == [{"id": 0}, {"id": 1}]
+    assert len(log) > 0 and log.ranges_m.shape == (len(log), 2)
+    assert np.isnan(log.position_enu[:, 2]).all() and np.isnan(log.ranges_m[:, 1]).all()
+
+
+async def test_service_writes_a_cycle_per_line(tmp_path: Path) -> None:
+    cfg = make_config(logging={"flight_log_dir": str(tmp_path)})
+    a, b = memory_pair()
+    svc = Service(cfg, a, planner_factory=PlannerBox(), notifier=SystemdNotifier({}))
+    ap = FakeAutopilot(b)
+    task = asyncio.create_task(svc.run())
+    await ap.start()
+    while not svc.configured:
+        await asyncio.sleep(0.01)
+    ap.set_mode(4)
+    await ap.wait_for(lambda: len(ap.setpoints()) >= 10)
+    svc.stop()
+    assert await asyncio.wait_for(task, 5) == 0
+    await ap.stop()
+    (path,) = tmp_path.glob("flight-*.jsonl")
+    log = read_flight_log(path)
+    assert len(log.header["sensors"]) == 3
+    assert len(log) == svc.counters["cycles"]
+    active = [i for i, h in enumerate(log.health) if h == "active"]
+    assert len(active) >= 10
+    i = active[-1]
+    assert log.setpoint_kind[i] == "planner" and log.decision[i] == "vertical"
+    assert log.setpoint_velocity_enu[i] == pytest.approx([1.0, 0.0, 0.0])
+    np.testing.assert_allclose(log.ranges_m[i], [0.0, 7.0, 7.0])
+    assert log.frames and log.frames[0]["origin"][0] == pytest.approx(47.397742)
+    assert any(text == "flying route" for _, text in log.events)
+    assert log.counters["service.cycles"] >= len(log) - 1

@@ -1,0 +1,112 @@
+"""The input cache: validation, units, sensor mapping, ordering, reboots, jumps."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from companion.service.codec import mavlink2
+from companion.service.telemetry import Telemetry
+from tests.service_fakes import HOME, make_config
+
+
+def tel() -> Telemetry:
+    return Telemetry(make_config().sensor_table())
+
+
+def att(tb: int, roll: float = 0.0) -> object:
+    return mavlink2.MAVLink_attitude_message(tb, roll, 0.1, 0.2, 0.0, 0.0, 0.0)
+
+
+def pos(tb: int, north_m: float = 0.0, alt: float = HOME[2] + 5) -> object:
+    lat = HOME[0] + math.degrees(north_m / 6_378_137.0)
+    return mavlink2.MAVLink_global_position_int_message(
+        tb, round(lat * 1e7), round(HOME[1] * 1e7), round(alt * 1000), 5000, 100, -50, 20, 0
+    )
+
+
+def dist(tb: int, sid: int, cm: int, orientation: int = 0, q: list[float] | None = None) -> object:
+    return mavlink2.MAVLink_distance_sensor_message(
+        tb, 10, 1000, cm, 0, sid, orientation, 0, 0.0, 0.0, q or [0, 0, 0, 0]
+    )
+
+
+def test_attitude_nan_inf_and_range_rejected_and_counted() -> None:
+    t = tel()
+    assert t.update(att(10), 1.0) == "ATTITUDE"
+    assert t.update(att(20, math.nan), 2.0) is None
+    assert t.update(att(30, math.inf), 3.0) is None
+    assert t.update(att(40, 4.0), 4.0) is None  # |roll| > pi
+    assert t.counters["rejected_attitude_nonfinite"] == 2
+    assert t.counters["rejected_attitude_range"] == 1
+    assert t.attitude is not None and t.attitude.t_rx == 1.0  # the old value stays and ages
+
+
+def test_position_units_and_no_fix() -> None:
+    t = tel()
+    assert t.update(pos(10), 0.5) == "GLOBAL_POSITION_INT"
+    p = t.position
+    assert p is not None
+    assert p.alt_amsl_m == pytest.approx(HOME[2] + 5) and p.relative_alt_m == 5.0
+    assert p.velocity_ned_mps == (1.0, -0.5, 0.2)
+    zero = mavlink2.MAVLink_global_position_int_message(20, 0, 0, 0, 0, 0, 0, 0, 0)
+    assert t.update(zero, 0.6) is None and t.counters["rejected_position_range"] == 1
+
+
+def test_out_of_order_duplicates_and_reboot() -> None:
+    t = tel()
+    t.update(att(5000), 1.0)
+    assert t.update(att(4990), 1.1) is None and t.counters["out_of_order"] == 1
+    assert t.update(att(5000), 1.2) is None and t.counters["duplicate"] == 1
+    t.update(pos(5000), 1.0)
+    assert t.update(att(100), 1.3) == "ATTITUDE"  # 4.9 s back: a reboot
+    assert t.reboots == 1 and t.counters["time_boot_backwards"] == 1
+    assert t.position is None  # everything else forgotten
+
+
+def test_position_jump_rejected_then_accepted_if_it_persists() -> None:
+    t = Telemetry(make_config().sensor_table(), max_speed_mps=20.0, jump_accept_s=0.5)
+    t.update(pos(1000, 0.0), 1.0)
+    assert t.update(pos(1100, 0.5), 1.1) is not None  # 5 m/s: fine
+    assert t.update(pos(1200, 100.0), 1.2) is None  # 1000 m/s: glitch
+    assert t.counters["rejected_position_jump"] == 1
+    assert t.update(pos(1500, 100.0), 1.5) is None
+    assert t.update(pos(1800, 100.0), 1.8) is not None  # persisted 0.6 s: accept
+    assert t.counters["position_jump_accepted"] == 1
+
+
+def test_distance_sensor_mapping_units_and_nothing_detected() -> None:
+    t = tel()
+    now = 2.0
+    assert t.update(dist(1, 0, 250), now)
+    r = t.range_vector(now, 0.5)
+    assert r[0] == 2.5 and math.isnan(r[1]) and math.isnan(r[2])  # missing = NaN
+    for cm, name in ((0, "range_none"), (65535, "range_none"), (5, "range_below_min"),
+                     (1000, "range_at_max"), (1500, "range_at_max")):  # fmt: skip
+        t.update(dist(0, 0, cm), now)
+        assert t.range_vector(now, 0.5)[0] == 0.0  # fresh "nothing detected"
+        assert t.counters[name] >= 1
+    assert math.isnan(t.range_vector(now + 0.6, 0.5)[0])  # stale = NaN
+    assert t.stale_sensors(now, 0.5) == [1, 2]
+
+
+def test_distance_sensor_orientation_checked() -> None:
+    t = tel()
+    assert t.update(dist(0, 1, 300, orientation=39), 1.0)  # PITCH_315 as configured
+    assert not t.update(dist(0, 1, 300, orientation=25), 1.0)  # PITCH_270: mismatch
+    assert t.counters["rejected_sensor_orientation_mismatch"] == 1
+    assert not t.update(dist(0, 0, 300, orientation=77), 1.0)
+    assert t.counters["rejected_sensor_orientation_unknown"] == 1
+    assert not t.update(dist(0, 42, 300), 1.0)
+    assert t.counters["rejected_sensor_unknown_id"] == 1
+    # sensor 2 is tilted back-down: CUSTOM with a quaternion, or unverifiable without one
+    spec = t.sensors.specs[2]
+    from companion.planner.sensors import quaternion_from_boresight_frd
+
+    q = quaternion_from_boresight_frd(spec.boresight_frd).tolist()
+    assert t.update(dist(0, 2, 300, orientation=100, q=q), 1.0)
+    assert t.update(dist(0, 2, 300, orientation=100), 1.0)
+    assert t.counters["sensor_orientation_unverified"] == 1
+    np.testing.assert_allclose(t.range_vector(1.0, 0.5), [math.nan, 3.0, 3.0])
