@@ -8,8 +8,8 @@ from companion.service.failsafe import Assessment, Failsafe, Limits, Verdict, as
 from companion.service.identity import Health, companion_system_id, heartbeat_message
 from companion.service.modes import (
     AutopilotKind,
-    OwnState,
     Ownership,
+    OwnState,
     VehicleMode,
     autopilot_kind,
     is_guided,
