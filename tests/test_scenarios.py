@@ -68,3 +68,22 @@ def test_never_closer_than_d_min(flown: tuple) -> None:  # type: ignore[type-arg
     scenario, m, _ = flown
     assert m["min_clearance_m"] >= scenario.planner.d_min_m
     assert m["collisions"] == 0
+
+
+@pytest.mark.slow
+def test_paper_with_a_multicopter_that_lags() -> None:
+    """The multicopter model does not follow X_d exactly and tilts to accelerate: the
+    sensors no longer look along the path. The outcome must not depend on that."""
+    path = Path(__file__).parent.parent / "config" / "scenarios" / "paper.yaml"
+    scenario = load_scenario(path)
+    scenario = scenario.model_copy(
+        update={"vehicle": scenario.vehicle.model_copy(update={"model": "multicopter"})}
+    )
+    world = World.from_config(scenario.world, path.parent)
+    result = run(scenario, world)
+    m = metrics_mod.compute(result.trace, scenario.route_obj(), world, 2.0, 1.0, result.finished)
+    assert m["reached_goal"]
+    assert m["min_clearance_m"] >= scenario.planner.d_min_m
+    assert m["collisions"] == 0
+    assert m["passed_side"]["sharp hill"] == "left"
+    assert m["max_height_error_m"] <= 0.2
