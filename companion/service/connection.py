@@ -4,7 +4,8 @@ Bytes from the link are decoded at once, in the event loop's callback, and every
 stamped with the service clock at that moment (its receipt time). Until the autopilot is
 known, HEARTBEATs are offered to `on_unlocked` so the service can pick it; after `lock()`,
 only messages from the autopilot's (system id, component id) are passed on, everything else
-is dropped and counted. Waiters registered with `expect` (command acks, mission items) see
+is dropped and counted (TIMESYNC requests are answered before the lock too: a lockstep
+simulator waits for them before it sends its first heartbeat). Waiters registered with `expect` (command acks, mission items) see
 each accepted message before the general handler.
 """
 
@@ -75,8 +76,13 @@ class Connection:
     def _route(self, msg: MAVLinkMessage, t_rx: float, peer: Peer) -> None:
         src_sys, src_comp = msg.get_srcSystem(), msg.get_srcComponent()
         if self.target_system is None:
-            if msg.get_type() == "HEARTBEAT" and self.on_unlocked is not None:
+            mtype = msg.get_type()
+            if mtype == "HEARTBEAT" and self.on_unlocked is not None:
                 self.on_unlocked(msg, t_rx)
+            elif mtype == "TIMESYNC" and self.on_message is not None:
+                # answered before an autopilot is known: a lockstep simulator waits for it
+                self.on_message(msg, t_rx)
+                return
             if self.target_system is None:
                 self.counters["before_lock"] += 1
                 return
