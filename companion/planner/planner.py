@@ -49,6 +49,7 @@ _RETREAT_STEPS_M = (3.0, 6.0, 9.0, 12.0, 16.0, 20.0, 25.0, 30.0, 40.0)
 _YAW_RATE_AT_REST_RAD_S = 0.8
 _YAW_ALIGNED_RAD = 0.1
 _STOPPED_MPS = 1e-3
+_GROUND_HOLD_RANGE = 4.0
 
 
 class Planner:
@@ -100,6 +101,7 @@ class Planner:
         self._stops: list[float] = []
         self._track: deque[tuple[float, float]] = deque(maxlen=_TRACK_MAX_POINTS)
         self._track.append((float(start[0]), float(start[1])))
+        self._last_ground: dict[Group, FloatArray] = {}
 
     # --- public controls -------------------------------------------------------------------
     @property
@@ -154,12 +156,13 @@ class Planner:
         surface = {g: i for g, i in self.sensors.surface_index.items() if valid[i]}
 
         # Eqs (3)-(4): desired pitch from the fore and aft ground points.
-        fwd, back = surface.get(Group.SURFACE_FORWARD), surface.get(Group.SURFACE_BACK)
-        surface_valid = fwd is not None and back is not None
-        phi_d = 0.0
-        if fwd is not None and back is not None:
+        x_h1 = self._ground_point(Group.SURFACE_FORWARD, points, surface, state)
+        x_h2 = self._ground_point(Group.SURFACE_BACK, points, surface, state)
+        surface_valid = x_h1 is not None and x_h2 is not None
+        phi_d = 0.0  # no ground in view: hold the height
+        if x_h1 is not None and x_h2 is not None:
             try:
-                x_z = aim_point(points[fwd], points[back], state.yaw_rad, self._h_d)
+                x_z = aim_point(x_h1, x_h2, state.yaw_rad, self._h_d)
                 phi_d = desired_pitch(x_z, self._xd_prev, params.phi_max_rad)
             except ValueError:
                 surface_valid = False
@@ -252,6 +255,28 @@ class Planner:
         return StepResult(setpoint, diagnostics)
 
     # --- helpers ----------------------------------------------------------------------------
+    def _ground_point(
+        self, group: Group, points: FloatArray, surface: dict[Group, int], state: VehicleState
+    ) -> FloatArray | None:
+        """X_h of a surface sensor this cycle, or the last one it measured while that is
+        still on its side of the vehicle (ahead for h1, behind for h2) and within
+        _GROUND_HOLD_RANGE H_d: ground does not move, and a tilted vehicle looks past it
+        for a while (a nose-down pitch lifts the backward sensor above its range)."""
+        idx = surface.get(group)
+        if idx is not None:
+            point: FloatArray = points[idx].copy()
+            self._last_ground[group] = point
+            return point
+        held = self._last_ground.get(group)
+        if held is None:
+            return None
+        rel = held[:2] - state.position_enu[:2]
+        along = rel[0] * math.cos(state.yaw_rad) + rel[1] * math.sin(state.yaw_rad)
+        ahead = group is Group.SURFACE_FORWARD
+        if (along > 0.0) == ahead and math.hypot(*rel) <= _GROUND_HOLD_RANGE * self._h_d:
+            return held
+        return None
+
     def _ground_points(
         self, points: FloatArray, surface: dict[Group, int], state: VehicleState
     ) -> FloatArray:
