@@ -109,12 +109,14 @@ class AutoStartConfig(Section):
     """`control.auto_start:` arm, take off and switch mode without a pilot (SITL, demos).
 
     takeoff_alt_m: above home; default the planner's H_d.
-    arm_timeout_s: keep retrying the arm command this long (SITL needs ~45 s to be armable).
+    arm_timeout_s: keep retrying the arm command (every arm_retry_s) this long; ArduCopter
+        SITL needs ~45 s to be armable.
     """
 
     enabled: bool = False
     takeoff_alt_m: Positive | None = None
     arm_timeout_s: Annotated[float, Field(gt=0, le=600)] = 120.0
+    arm_retry_s: Annotated[float, Field(ge=0.1, le=60)] = 2.0
     takeoff_timeout_s: Annotated[float, Field(gt=0, le=600)] = 60.0
     prestream_s: Annotated[float, Field(ge=0.1, le=10)] = 1.0
     """PX4: how long setpoints stream before OFFBOARD is requested."""

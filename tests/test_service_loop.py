@@ -337,7 +337,9 @@ async def test_ardupilot_auto_start_guided_arm_takeoff() -> None:
 
 
 async def test_arming_refused_then_accepted_is_retried() -> None:
-    cfg = make_config(control={"auto_start": {"enabled": True, "arm_timeout_s": 10}})
+    cfg = make_config(
+        control={"auto_start": {"enabled": True, "arm_timeout_s": 10, "arm_retry_s": 0.1}}
+    )
     async with running(cfg=cfg, armed=False, alt_amsl=HOME[2], command_results={400: 4}) as (
         _svc,
         ap,

@@ -64,22 +64,24 @@ async def fly(personality: str, until_s: float, **sim: Any) -> tuple[Service, An
 
 @pytest.mark.parametrize("personality", ["ardupilot", "px4"])
 async def test_service_flies_towards_the_goal_in_lockstep(personality: str) -> None:
-    svc, server = await fly(personality, 30.0)
+    svc, server = await fly(personality, 22.0)
     assert server.stats.lockstep_stalls == 0
     assert svc.ownership.engaged and svc.counters["planner_starts"] == 1
     c = svc.counter_values()
     assert c["codec.bad_crc"] == 0 and c.get("service.planner_errors", 0) == 0
     truth = server.truth
-    first = np.array(truth[0].position_enu)
+    xs = np.array([t.position_enu[0] for t in truth])
     last = np.array(truth[-1].position_enu)
-    # west along the paper's route at about v_d = 1 m/s, H_d = 2 m above the ground
-    assert last[0] < first[0] - 5.0
+    # the route starts along the vehicle's heading (east in the simulator), turns and goes
+    # west towards the goal at about v_d = 1 m/s, H_d = 2 m above the ground
+    assert last[0] < xs.max() - 3.0
+    assert np.all(np.diff(xs[-200:]) < 0.0)
     assert 1.0 < last[2] < 6.0
 
 
 async def test_pilot_mode_change_stops_the_service() -> None:
     svc, server = await fly(
-        "ardupilot", 25.0, faults={"mode_changes": [{"at_s": 20.0, "mode": "LOITER"}]}
+        "ardupilot", 17.0, faults={"mode_changes": [{"at_s": 15.0, "mode": "LOITER"}]}
     )
     assert svc.ownership.state.value == "released"
     assert svc.counters["released"] == 1

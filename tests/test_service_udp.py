@@ -172,10 +172,12 @@ async def test_udp_sim_time_lockstep() -> None:
     async with over_udp(cfg, answer_timesync=False) as (svc, ap, box):
         ap.telemetry_enabled = ap.heartbeat_enabled = False  # the lockstep below sends them
         answers: dict[int, float] = {}
+        answered = asyncio.Event()
 
         def on_timesync(msg: Any) -> None:
             if int(msg.tc1) != 0:
                 answers[int(msg.ts1)] = asyncio.get_running_loop().time()
+                answered.set()
 
         ap._on_timesync = on_timesync  # type: ignore[attr-defined]
         t_ns = 0
@@ -187,8 +189,11 @@ async def test_udp_sim_time_lockstep() -> None:
             t_ns += tick_ns
             ap.heartbeat()
             ap.telemetry()
+            answered.clear()
             ap.send(mavlink2.MAVLink_timesync_message(0, t_ns))
-            await until(lambda: t_ns in answers, 2.0)
+            while t_ns not in answers:
+                await asyncio.wait_for(answered.wait(), 2.0)
+                answered.clear()
             setpoints_at_answer.append(len(ap.setpoints()))
 
         while not svc.configured:

@@ -5,8 +5,8 @@ stamped with the service clock at that moment (its receipt time). Until the auto
 known, HEARTBEATs are offered to `on_unlocked` so the service can pick it; after `lock()`,
 only messages from the autopilot's (system id, component id) are passed on, everything else
 is dropped and counted (TIMESYNC requests are answered before the lock too: a lockstep
-simulator waits for them before it sends its first heartbeat). Waiters registered with `expect` (command acks, mission items) see
-each accepted message before the general handler.
+simulator waits for them before it sends its first heartbeat). Waiters registered with
+`expect` (command acks, mission items) see each accepted message before the general handler.
 """
 
 from __future__ import annotations

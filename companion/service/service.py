@@ -552,7 +552,8 @@ class Service:
         while not pred():
             if time.monotonic() >= deadline:
                 return False
-            await asyncio.sleep(0.05)
+            # short polls: in simulator time the world moves on while we wait
+            await asyncio.sleep(0.002 if self.sim_time else 0.02)
         return True
 
     async def _sleep_service_time(self, duration_s: float) -> None:
@@ -582,7 +583,7 @@ class Service:
                 )
                 if not await self._wait_for(self._guided, 5.0):
                     raise CommandError(176, "mode did not change to GUIDED")
-            await self._arm_with_retries(a.arm_timeout_s)
+            await self._arm_with_retries(a.arm_timeout_s, a.arm_retry_s)
             if self.kind is AutopilotKind.ARDUPILOT and not self._guided():
                 raise CommandError(176, "mode changed during auto start")
             home = self.tel.home
@@ -610,7 +611,7 @@ class Service:
             self._auto_busy = False
             self._priming = False
 
-    async def _arm_with_retries(self, timeout_s: float) -> None:
+    async def _arm_with_retries(self, timeout_s: float, retry_s: float) -> None:
         deadline = time.monotonic() + timeout_s
         while True:
             try:
@@ -620,7 +621,7 @@ class Service:
                 if time.monotonic() >= deadline:
                     raise
                 log.info("arming refused (%s); retrying", exc)
-                await asyncio.sleep(2.0)
+                await asyncio.sleep(retry_s)
         await self._wait_for(lambda: self.tel.heartbeat is not None and self.tel.heartbeat.armed, 3)
 
     def _guided(self) -> bool:
