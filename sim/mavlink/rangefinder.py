@@ -13,8 +13,8 @@ DISTANCE_SENSOR stream):
 - nothing within range: ArduPilot's serial lidar drivers report max_distance + 1 m
   (e.g. BENEWAKE_OUT_OF_RANGE_ADD_CM); PX4 (SIH, after LightWare) reports UINT16_MAX / 100 m,
   i.e. ~65535 cm.
-- PX4 converts metres to cm through float32 and truncates (the "1 cm lower" seen on SITL);
-  ArduPilot truncates too.
+- metres -> cm as the autopilots do it: float32 metres * 100.0f, truncated (so 0.53 m
+  gives 52 cm; PX4 re-publishing adds another such step, the "1 cm lower" seen on SITL).
 - signal_quality 0 (unknown): ArduPilot's SITL backend and PX4's stream do not report one.
 """
 
@@ -103,12 +103,12 @@ class Rangefinders:
         """current_distance for a reading, with the family's out-of-range convention."""
         w = self.wire[index]
         in_range = np.isfinite(range_m) and range_m < self.max_m[index]
-        if self.family == "ardupilot":
-            if not in_range:
+        if not in_range:
+            if self.family == "ardupilot":
                 return min(w.max_cm + ARDUPILOT_OUT_OF_RANGE_ADD_CM, UINT16_MAX)
-            return min(int(max(range_m, 0.0) * 100.0), UINT16_MAX)
-        metres = np.float32(range_m) if in_range else np.float32(UINT16_MAX / 100.0)
-        return min(int(np.float32(max(metres, np.float32(0.0))) * np.float32(100.0)), UINT16_MAX)
+            range_m = UINT16_MAX / 100.0
+        # Both autopilots multiply a float metre value by 100.0f and truncate to uint16.
+        return min(int(np.float32(max(range_m, 0.0)) * np.float32(100.0)), UINT16_MAX)
 
     def message(self, mav: Any, index: int, range_m: float, time_boot_ms: int) -> Any:
         w = self.wire[index]

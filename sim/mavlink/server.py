@@ -41,7 +41,7 @@ import logging
 import math
 import time
 from collections import deque
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -211,6 +211,7 @@ class SimServer:
         self._closed = False
         self._reboot_requested = False
         self._silent_until = -math.inf
+        self._after_ack: list[Any] = []
         self._record_truth()
 
     @classmethod
@@ -407,45 +408,48 @@ class SimServer:
         for msg_id in due:
             self._send_telemetry(msg_id, snap)
 
-    def _send_telemetry(self, msg_id: int, snap: tm.Snapshot) -> None:
+    def _send_telemetry(
+        self, msg_id: int, snap: tm.Snapshot, send: Callable[[Any], None] | None = None
+    ) -> None:
         mav = self.codec.mav
+        out = self._send if send is None else send
         ap = self.autopilot
         name = tm.NAME_OF_ID[msg_id]
         if name == "HEARTBEAT":
-            self._send(tm.heartbeat_message(mav, self.personality, ap.mode, ap.armed, ap.failsafe))
+            out(tm.heartbeat_message(mav, self.personality, ap.mode, ap.armed, ap.failsafe))
         elif name == "SYS_STATUS":
-            self._send(tm.sys_status_message(mav, ap.ready(self.t_s), 0.0))
+            out(tm.sys_status_message(mav, ap.ready(self.t_s), 0.0))
         elif name == "SYSTEM_TIME":
-            self._send(mav.system_time_encode(int(time.time() * 1e6), snap.time_boot_ms))
+            out(mav.system_time_encode(int(time.time() * 1e6), snap.time_boot_ms))
         elif name == "ATTITUDE":
-            self._send(tm.attitude_message(mav, snap))
+            out(tm.attitude_message(mav, snap))
         elif name == "GLOBAL_POSITION_INT":
             home_amsl = ap.frame_context.amsl(ap.home_enu)
-            self._send(tm.global_position_int_message(mav, snap, self.frame, home_amsl))
+            out(tm.global_position_int_message(mav, snap, self.frame, home_amsl))
         elif name == "LOCAL_POSITION_NED":
-            self._send(tm.local_position_ned_message(mav, snap, ap.origin_enu))
+            out(tm.local_position_ned_message(mav, snap, ap.origin_enu))
         elif name == "HOME_POSITION":
-            self._send(
+            out(
                 tm.home_position_message(
                     mav, self.frame, ap.home_enu, ap.origin_enu, snap.time_boot_ms * 1000
                 )
             )
         elif name == "EXTENDED_SYS_STATE":
             climbing = ap.takeoff_z is not None
-            self._send(tm.extended_sys_state_message(mav, ap.landed, ap.armed, climbing))
+            out(tm.extended_sys_state_message(mav, ap.landed, ap.armed, climbing))
         elif name == "TIMESYNC":
-            self._send(mav.timesync_encode(0, snap.time_ns))
+            out(mav.timesync_encode(0, snap.time_ns))
         elif name == "DISTANCE_SENSOR":
-            self._send_distance_sensors(snap)
+            self._send_distance_sensors(snap, out)
 
-    def _send_distance_sensors(self, snap: tm.Snapshot) -> None:
+    def _send_distance_sensors(self, snap: tm.Snapshot, out: Callable[[Any], None]) -> None:
         rf = self.rangefinders
         if not len(rf):
             return
         ranges, send = self.sensor_faults.apply(self.t_s, rf.measure(self.state))
         for i in range(len(rf)):
             if send[i]:
-                self._send(rf.message(self.codec.mav, i, float(ranges[i]), snap.time_boot_ms))
+                out(rf.message(self.codec.mav, i, float(ranges[i]), snap.time_boot_ms))
 
     def _flush_texts(self) -> None:
         texts, self.autopilot.texts = self.autopilot.texts, []
@@ -570,6 +574,10 @@ class SimServer:
             p += [float(msg.param5), float(msg.param6), float(msg.param7)]
             frame = None
         self._ack(msg, cmd, self._command_result(cmd, p, frame, now))
+        # Requested messages follow the ACK, as ArduPilot and PX4 send them.
+        for reply in self._after_ack:
+            self._send(reply)
+        self._after_ack.clear()
 
     def _command_result(self, cmd: int, p: list[float], frame: int | None, now: float) -> int:
         ap = self.autopilot
@@ -621,7 +629,7 @@ class SimServer:
 
     def _request_message(self, msg_id: int) -> int:
         if msg_id == mavlink.MAVLINK_MSG_ID_AUTOPILOT_VERSION:
-            self._send(
+            self._after_ack.append(
                 tm.autopilot_version_message(
                     self.codec.mav, self.personality, self.config.system_id
                 )
@@ -629,7 +637,7 @@ class SimServer:
             return ACCEPTED
         if msg_id not in tm.NAME_OF_ID:
             return FAILED
-        self._send_telemetry(msg_id, self.snapshot())
+        self._send_telemetry(msg_id, self.snapshot(), self._after_ack.append)
         return ACCEPTED
 
     # -------------------------------------------------------------------- lockstep

@@ -193,7 +193,7 @@ def decode_px4(msg: Any, ctx: FrameContext, now_s: float) -> Decision:
         else:
             return Decision(
                 Outcome.IGNORE,
-                reason=f"SET_POSITION_TARGET_GLOBAL_INT invalid coordinate frame {frame}",
+                reason=f"SET_POSITION_TARGET_GLOBAL_INT: bad frame {frame}",
             )
     velocity = None if mask & VEL_IGNORE else _velocity(msg)
     if position is None and velocity is None:
