@@ -100,6 +100,8 @@ class BridgeCore:
         state = self.pose()
         if state is None:
             return []
+        if self.config.send_to == "companion" and self.autopilot_sysid is None:
+            return []  # which autopilot's conventions to imitate is not known yet
         rf = self.rangefinders()
         ranges = rf.measure(state)
         return [rf.message(mav, i, float(ranges[i]), self.time_boot_ms) for i in range(len(rf))]

@@ -40,7 +40,7 @@ import contextlib
 import logging
 import math
 import time
-from collections import deque
+from collections import Counter, deque
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import Any
@@ -103,6 +103,7 @@ class SimStats:
     lockstep_waits: int = 0
     lockstep_stalls: int = 0
     received: int = 0
+    received_by_type: Counter[str] = field(default_factory=Counter)
     sent: int = 0
     dropped_link_down: int = 0
     reboots: int = 0
@@ -506,6 +507,7 @@ class SimServer:
         link_up = self._link_up()
         for msg in messages:
             self.stats.received += 1
+            self.stats.received_by_type[msg.get_type()] += 1
             if msg.get_type() == "TIMESYNC" and msg.tc1 != 0:
                 if self._lockstep_ts1 is not None and msg.ts1 == self._lockstep_ts1:
                     self._lockstep_ts1 = None
