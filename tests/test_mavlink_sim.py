@@ -23,6 +23,7 @@ from sim.mavlink import ThreadedSim
 from sim.mavlink.setpoints import ACC_IGNORE, VEL_IGNORE, YAW_IGNORE, YAW_RATE_IGNORE
 from tests.test_mavlink_sim_support import (
     Client,
+    PlaneAndWall,
     enu_of,
     frame_of,
     latlon_int,
@@ -253,6 +254,29 @@ def test_px4_offboard() -> None:
         assert hb.system_status == R.MAV_STATE_CRITICAL
         after = c.recv("GLOBAL_POSITION_INT")
         assert after.time_boot_ms > last and after.relative_alt > 5500  # holding
+
+
+def test_ardusub_dives_in_guided() -> None:
+    world = PlaneAndWall(wall_x=50.0, floor_z=-20.0)
+    make = lambda: make_server(personality="ardusub", speedup=20.0, world=world)  # noqa: E731
+    with ThreadedSim(make) as sim, Client(sim.port) as c:
+        hb = c.recv("HEARTBEAT")
+        assert hb.type == R.MAV_TYPE_SUBMARINE and hb.custom_mode == 19  # MANUAL
+        assert c.command(R.MAV_CMD_NAV_TAKEOFF, 0, 0, 0, 0, 0, 0, 5) == R.MAV_RESULT_UNSUPPORTED
+        c.set_interval(MSG["GLOBAL_POSITION_INT"], 20)
+        c.set_interval(MSG["DISTANCE_SENSOR"], 10)
+        _until_accepted(c, R.MAV_CMD_DO_SET_MODE, 1, 4)
+        assert c.command(R.MAV_CMD_COMPONENT_ARM_DISARM, 1) == R.MAV_RESULT_ACCEPTED
+        lat, lon = latlon_int(frame_of(sim.server), 5.0, 0.0)
+        home_alt = sim.server.config.home_or_default.alt_m
+        c.mav.set_position_target_global_int_send(
+            0, 1, 1, R.MAV_FRAME_GLOBAL_INT, POS_ONLY, lat, lon, home_alt - 8.0, *[0] * 8
+        )
+        deep = c.recv("GLOBAL_POSITION_INT", timeout=10, cond=lambda m: m.relative_alt < -7900)
+        assert deep.alt == pytest.approx((home_alt - 8.0) * 1000, abs=150)
+        down = c.recv("DISTANCE_SENSOR", cond=lambda m: m.id == 7)  # forward, 45 deg down
+        assert down.current_distance == 1100  # seafloor 12 m below: 17 m away, beyond 10 m
+    assert sim.server.truth[0].position_enu[2] == 0.0  # started at the surface
 
 
 @pytest.mark.parametrize("personality", ["ardupilot", "px4"])

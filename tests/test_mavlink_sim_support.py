@@ -1,8 +1,8 @@
 """Stand-ins and helpers shared by the tests of sim.mavlink (no tests in here).
 
-`PlaneAndWall`: flat ground at z = 0 and a wall filling x >= wall_x up to wall_h, with exact
-ray casts. `Tracker`: a vehicle model that is exactly at its setpoint. `Client`: a plain
-pymavlink (mavutil) client with small conveniences.
+`PlaneAndWall`: flat ground at z = floor_z and a wall filling x >= wall_x up to wall_h above
+it, with exact ray casts. `Tracker`: a vehicle model that is exactly at its setpoint.
+`Client`: a plain pymavlink (mavutil) client with small conveniences.
 """
 
 from __future__ import annotations
@@ -23,16 +23,17 @@ from sim.mavlink import MavlinkSimConfig, SimServer
 
 
 class PlaneAndWall:
-    def __init__(self, wall_x: float = 10.0, wall_h: float = 8.0) -> None:
+    def __init__(self, wall_x: float = 10.0, wall_h: float = 8.0, floor_z: float = 0.0) -> None:
         self.wall_x = wall_x
         self.wall_h = wall_h
+        self.floor_z = floor_z
 
     def height(self, x: Any, y: Any) -> Any:
         x = np.asarray(x, dtype=float)
-        return np.where(x >= self.wall_x, self.wall_h, 0.0)
+        return self.floor_z + np.where(x >= self.wall_x, self.wall_h, 0.0)
 
     def raycast(self, origins: Any, directions: Any, max_range: Any) -> FloatArray:
-        o = np.asarray(origins, float).reshape(-1, 3)
+        o = np.asarray(origins, float).reshape(-1, 3) - [0.0, 0.0, self.floor_z]
         d = np.asarray(directions, float).reshape(-1, 3)
         d = d / np.linalg.norm(d, axis=1)[:, None]
         r = np.broadcast_to(np.asarray(max_range, float), (len(o),))
