@@ -10,7 +10,9 @@ file is a header record; then records by `type`:
      "ranges": [m | null, ...], "sp": {"p": [x, y, z], "v": [vx, vy, vz], "yaw": rad,
      "pitch": rad} | null, "sp_kind": "planner" | "hold" | "prime" | null,
      "decision": str | null, "mode": str | null, "side": str | null,
-     "min_range": m | null, "finished": bool, "events": [str, ...]}
+     "min_range": m | null, "phi_star": [rad, ...] | null, "phi_star_threshold": [rad, ...]
+     | null, "phi_d": rad | null, "v_ref": m/s | null, "replanned": bool, "finished": bool,
+     "events": [str, ...]}
     {"type": "counters", "t": .., "counters": {name: n, ...}}
 
 Frames as the planner's: local ENU metres anchored at home, yaw counter-clockwise from east,
@@ -184,6 +186,12 @@ class FlightLog:
     side: list[str | None]
     min_range_m: FloatArray
     finished: np.ndarray
+    phi_star_rad: FloatArray = field(default_factory=lambda: np.empty((0, 0)))
+    """(n, m) phi_i* per obstacle sensor (NaN where the planner did not run)."""
+    phi_star_threshold_rad: FloatArray = field(default_factory=lambda: np.empty((0, 0)))
+    phi_d_rad: FloatArray = field(default_factory=lambda: np.empty(0))
+    speed_ref_mps: FloatArray = field(default_factory=lambda: np.empty(0))
+    replanned: np.ndarray = field(default_factory=lambda: np.empty(0, dtype=bool))
     events: list[tuple[float, str]] = field(default_factory=list)
     frames: list[dict[str, Any]] = field(default_factory=list)
     counters: dict[str, int] = field(default_factory=dict)
@@ -213,8 +221,10 @@ def read_flight_log(path: Path) -> FlightLog:
                 events.append((float(rec.get("t", math.nan)), str(e)))
     k = len(header.get("sensors", [])) or max((len(r.get("ranges") or []) for r in rows), default=0)
 
+    m = max((len(r.get("phi_star") or []) for r in rows), default=0)
+
     def arr(key: str, n: int) -> FloatArray:
-        return np.array([_vec(r.get(key), n) for r in rows], dtype=np.float64).reshape(-1, n)
+        return np.array([_vec(r.get(key), n) for r in rows], dtype=np.float64).reshape(len(rows), n)
 
     def sp(key: str, n: int) -> FloatArray:
         vals = [_vec((r.get("sp") or {}).get(key), n) for r in rows]
@@ -245,6 +255,11 @@ def read_flight_log(path: Path) -> FlightLog:
         side=[r.get("side") for r in rows],
         min_range_m=np.array([scalar(r.get("min_range")) for r in rows], dtype=np.float64),
         finished=np.array([bool(r.get("finished", False)) for r in rows], dtype=bool),
+        phi_star_rad=arr("phi_star", m),
+        phi_star_threshold_rad=arr("phi_star_threshold", m),
+        phi_d_rad=np.array([scalar(r.get("phi_d")) for r in rows], dtype=np.float64),
+        speed_ref_mps=np.array([scalar(r.get("v_ref")) for r in rows], dtype=np.float64),
+        replanned=np.array([bool(r.get("replanned", False)) for r in rows], dtype=bool),
         events=events,
         frames=frames,
         counters=counters,

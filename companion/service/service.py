@@ -939,6 +939,11 @@ class Service:
             "mode": None if d is None else str(d.mode),
             "side": None if d is None else str(d.side),
             "min_range": None if d is None else d.min_range_m,
+            "phi_star": None if d is None else d.phi_star_rad,
+            "phi_star_threshold": None if d is None else d.threshold_rad,
+            "phi_d": None if d is None else d.phi_d_rad,
+            "v_ref": None if d is None else d.speed_ref_mps,
+            "replanned": bool(d.replanned) if d is not None else False,
             "finished": bool(d.finished) if d is not None else False,
             "events": list(events) + (list(d.events) if d is not None else []),
         }
