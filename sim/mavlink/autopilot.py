@@ -47,7 +47,6 @@ from sim.mavlink.setpoints import (
 ACCEPTED = int(mavlink.MAV_RESULT_ACCEPTED)
 UNSUPPORTED = int(mavlink.MAV_RESULT_UNSUPPORTED)
 FAILED = int(mavlink.MAV_RESULT_FAILED)
-DENIED = int(mavlink.MAV_RESULT_DENIED)
 
 FORCE_MAGIC = 21196.0
 """param2 of MAV_CMD_COMPONENT_ARM_DISARM that forces arming/disarming."""
