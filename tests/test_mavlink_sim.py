@@ -493,6 +493,27 @@ def test_cli_help() -> None:
     assert "--connect" in out and "--send-to" in out
 
 
+def test_cli_serves_a_scenario(tmp_path: Path) -> None:
+    pytest.importorskip("sim.scenario")
+    scenario = Path(__file__).resolve().parent.parent / "config/scenarios/smooth-hill.yaml"
+    truth = tmp_path / "truth.csv"
+    args = ["serve", str(scenario), "--port", "0", "--speedup", "inf", "--duration", "0.5"]
+    result = subprocess.run(
+        [sys.executable, "-m", "sim", *args, "--personality", "px4", "--truth-csv", str(truth)],
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
+    assert result.returncode == 0, result.stderr
+    assert "px4 simulator on udp 127.0.0.1:" in result.stdout
+    rows = truth.read_text().splitlines()
+    assert rows[0].startswith("t_s,x_m") and len(rows) == 52
+    bad = subprocess.run(
+        [sys.executable, "-m", "sim", *args, "--physics-dt", "0.5"], capture_output=True, text=True
+    )
+    assert bad.returncode == 2 and "physics_dt_s" in bad.stderr
+
+
 def test_threaded_sim_reports_start_failures() -> None:
     def broken() -> Any:
         raise ValueError("no world")
