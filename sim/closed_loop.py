@@ -90,7 +90,7 @@ def run(
     state = vehicle.state
     prev_xd = np.array(start)
     finished = False
-    steps = int(round(scenario.duration_s / dt))
+    steps = round(scenario.duration_s / dt)
     goal = route.base_points[-1]
     for k in range(steps):
         t = (k + 1) * dt
