@@ -1,0 +1,11 @@
+"""Benchmarks of the planner, the simulator and the service (issue 6).
+
+`python -m bench` (or `make bench`) runs them all, prints a table and writes
+bench/results.json: every figure with its unit and the issue's target, the raw percentiles
+behind it, and the machine, date and commit. Benchmarks never fail on a number; a missed
+target is marked in the table. Machines are noisy, so compare figures of one run as ratios.
+
+Modules: `flight` (a timed closed-loop flight), `planner` (Planner.step, steady and
+re-planning), `arc` (eq. (5) stepping, exact vs the paper's search), `simulator`
+(in-process speed), `raycast` (World.raycast per ray), `report` (table, JSON, machine).
+"""

@@ -1,0 +1,60 @@
+"""`python -m bench [--quick] [--only NAME ...] [--out FILE]`: run the benchmarks, print the
+table, write the results (default bench/results.json)."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from pathlib import Path
+
+from bench import arc, planner, raycast, simulator
+from bench.report import Section, machine, table, write_results
+
+NAMES = ("planner", "arc", "simulator", "raycast")
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="python -m bench", description=__doc__)
+    parser.add_argument("--quick", action="store_true", help="fewer repeats (a smoke run)")
+    parser.add_argument("--only", nargs="+", choices=NAMES, help="run only these benchmarks")
+    parser.add_argument(
+        "--out",
+        type=Path,
+        default=Path(__file__).resolve().parent / "results.json",
+        help="where to write the results (default: bench/results.json)",
+    )
+    args = parser.parse_args(argv)
+    only = set(args.only or NAMES)
+    quick = args.quick
+    meta = machine()
+    started = time.perf_counter()
+    sections: list[Section] = []
+
+    def log(text: str) -> None:
+        print(f"[{time.perf_counter() - started:6.1f} s] {text}", file=sys.stderr, flush=True)
+
+    # The planner benchmark's paper flight also feeds the arc, simulator and ray benchmarks.
+    log("planner: flying the paper scenario and every scenario")
+    sec, flight = planner.run(runs=1 if quick else 3, replays=10 if quick else 100)
+    if "planner" in only:
+        sections.append(sec)
+    if "arc" in only:
+        log("arc-length stepping")
+        sections.append(arc.run(flight, max_iterations=50_000 if quick else 400_000))
+    if "simulator" in only:
+        log("simulator in process")
+        sections.append(simulator.run(flight, runs=1 if quick else 3))
+    if "raycast" in only:
+        log("ray casting")
+        sections.append(raycast.run(flight, poses=100 if quick else 300))
+    meta["wall_s"] = round(time.perf_counter() - started, 1)
+    meta["quick"] = quick
+    print(table(sections))
+    write_results(args.out, sections, meta)
+    print(f"wrote {args.out}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

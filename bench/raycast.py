@@ -1,0 +1,106 @@
+"""Ray casting cost per ray: the paper's 11 sensors cast from the poses of a real paper
+flight, and the same sensors over a 1000 x 1000 height map (0.1 m cells, seeded smooth
+terrain) from seeded random poses 1-5 m above it. Each cast is the simulator's: all 11
+rays of a pose in one call."""
+
+from __future__ import annotations
+
+import math
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+from bench.flight import Flight, load
+from bench.report import Section
+from companion.planner import VehicleState
+from companion.planner.rotations import r_g
+from sim.world import HeightmapConfig, World, WorldConfig
+
+HEIGHTMAP_CELLS = 1000
+HEIGHTMAP_RES_M = 0.1
+
+
+def heightmap(n: int = HEIGHTMAP_CELLS, seed: int = 6) -> np.ndarray:
+    """Smooth random terrain, (n, n) metres: a sum of twelve seeded plane waves."""
+    rng = np.random.default_rng(seed)
+    u = np.linspace(0.0, 1.0, n)
+    x, y = np.meshgrid(u, u)
+    z = np.zeros((n, n))
+    for _ in range(12):
+        kx, ky = rng.uniform(1.0, 8.0, 2)
+        phase = rng.uniform(0.0, 2.0 * math.pi)
+        z += rng.uniform(0.2, 1.5) * np.sin(2.0 * math.pi * (kx * x + ky * y) + phase)
+    return z
+
+
+def _time_casts(
+    world: World,
+    sensors_dirs: np.ndarray,
+    max_range: np.ndarray,
+    poses: list[VehicleState],
+    repeats: int,
+) -> float:
+    """Mean ns per ray of one `World.raycast` call of all sensors per pose."""
+    clock = time.perf_counter_ns
+    total = 0
+    rays = 0
+    for _ in range(repeats):
+        for st in poses:
+            rot = r_g(st.roll_rad, st.pitch_rad, st.yaw_rad)
+            dirs = sensors_dirs @ rot.T
+            origins = np.broadcast_to(st.position_enu, dirs.shape)
+            t0 = clock()
+            world.raycast(origins, dirs, max_range)
+            total += clock() - t0
+            rays += len(dirs)
+    return total / rays
+
+
+def run(flight: Flight, poses: int = 300, repeats: int = 3) -> Section:
+    """flight: a paper flight; its states are the poses cast from on the paper world."""
+    sec = Section("ray casting")
+    scenario, world = load("paper")
+    sensors = scenario.sensor_table()
+    dirs, max_range = sensors.boresights_flu, sensors.max_range_m
+    paper_poses = flight.states[:: max(1, len(flight.states) // poses)]
+    paper_ns = _time_casts(world, dirs, max_range, paper_poses, repeats)
+    sec.add("ray.paper_world_us", "per ray, paper world (11-ray casts)", paper_ns / 1e3, "us")
+
+    with tempfile.TemporaryDirectory(prefix="bench-heightmap-") as tmp:
+        path = Path(tmp) / "terrain.npy"
+        z = heightmap()
+        np.save(path, z)
+        cfg = WorldConfig(
+            features=[
+                HeightmapConfig(
+                    name="terrain", file=path.name, resolution_m=HEIGHTMAP_RES_M, origin=(0, 0)
+                )
+            ]
+        )
+        hm_world = World.from_config(cfg, tmp)
+        rng = np.random.default_rng(6)
+        span = (HEIGHTMAP_CELLS - 1) * HEIGHTMAP_RES_M
+        xy = rng.uniform(0.1 * span, 0.9 * span, size=(poses, 2))
+        ground = hm_world.height(xy[:, 0], xy[:, 1])
+        alt = ground + rng.uniform(1.0, 5.0, size=poses)
+        yaw = rng.uniform(-math.pi, math.pi, size=poses)
+        hm_poses = [
+            VehicleState(np.array([x, y, a]), 0.0, 0.0, float(w))
+            for (x, y), a, w in zip(xy, alt, yaw, strict=True)
+        ]
+        hm_ns = _time_casts(hm_world, dirs, max_range, hm_poses, repeats)
+    sec.add(
+        "ray.heightmap_1000_us",
+        f"per ray, {HEIGHTMAP_CELLS}x{HEIGHTMAP_CELLS} height map (11-ray casts)",
+        hm_ns / 1e3,
+        "us",
+    )
+    sec.details["poses"] = len(paper_poses)
+    sec.details["heightmap"] = {
+        "cells": HEIGHTMAP_CELLS,
+        "resolution_m": HEIGHTMAP_RES_M,
+        "poses": poses,
+    }
+    return sec

@@ -1,0 +1,51 @@
+"""In-process simulator speed: the paper scenario through `sim.closed_loop.run` (world, range
+sensors, planner, vehicle model, trace and clearance metrics), as simulated seconds per wall
+second, with where a cycle's time goes (from the timed flight of `bench.flight`)."""
+
+from __future__ import annotations
+
+import statistics
+import time
+
+import numpy as np
+
+from bench.flight import Flight, load
+from bench.report import Section
+from sim.closed_loop import run as closed_loop_run
+
+
+def run(flight: Flight, runs: int = 3) -> Section:
+    sec = Section("simulator, in process")
+    scenario, world = load("paper")
+    speeds = []
+    cycles = 0
+    for _ in range(runs):
+        t0 = time.perf_counter()
+        result = closed_loop_run(scenario, world)
+        wall = time.perf_counter() - t0
+        cycles = len(result.trace["t"])
+        speeds.append(cycles * scenario.dt_s / wall)
+    speed = statistics.median(speeds)
+    sec.details["speeds_x"] = speeds
+    sec.details["cycles"] = cycles
+    sec.details["same_flight_as_timed_loop"] = cycles == flight.cycles
+    sec.add(
+        "sim.inprocess.speed_x",
+        f"paper scenario ({cycles * scenario.dt_s:.0f} s simulated), median of {runs}",
+        speed,
+        "x real time",
+        (">=", 200),
+    )
+    parts = {
+        "range sensors (World.raycast)": flight.sense_ns,
+        "Planner.step": flight.step_ns,
+        "vehicle model": flight.vehicle_ns,
+        "clearance metrics (World distances)": flight.clearance_ns,
+    }
+    total = sum(float(np.mean(v)) for v in parts.values())
+    sec.details["cycle_breakdown_mean_us"] = {k: float(np.mean(v)) / 1e3 for k, v in parts.items()}
+    for label, ns in parts.items():
+        mean_us = float(np.mean(ns)) / 1e3
+        key = "sim.cycle." + label.split()[0].lower().replace(".", "_")
+        sec.add(key, f"per cycle: {label}", mean_us, f"us ({100 * mean_us * 1e3 / total:.0f}%)")
+    return sec
