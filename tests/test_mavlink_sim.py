@@ -23,12 +23,12 @@ from sim.mavlink import ThreadedSim
 from sim.mavlink.setpoints import ACC_IGNORE, VEL_IGNORE, YAW_IGNORE, YAW_RATE_IGNORE
 from tests.test_mavlink_sim_support import (
     Client,
-    PlaneAndWall,
     enu_of,
     frame_of,
     latlon_int,
     make_server,
     sensors,
+    wall_world,
 )
 
 pytestmark = [pytest.mark.sim, pytest.mark.timeout(60)]
@@ -257,7 +257,7 @@ def test_px4_offboard() -> None:
 
 
 def test_ardusub_dives_in_guided() -> None:
-    world = PlaneAndWall(wall_x=50.0, floor_z=-20.0)
+    world = wall_world(wall_x=50.0, floor_z=-20.0)
     make = lambda: make_server(personality="ardusub", speedup=20.0, world=world)  # noqa: E731
     with ThreadedSim(make) as sim, Client(sim.port) as c:
         hb = c.recv("HEARTBEAT")

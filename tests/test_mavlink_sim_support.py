@@ -1,7 +1,8 @@
 """Stand-ins and helpers shared by the tests of sim.mavlink (no tests in here).
 
 `PlaneAndWall`: flat ground at z = floor_z and a wall filling x >= wall_x up to wall_h above
-it, with exact ray casts. `Tracker`: a vehicle model that is exactly at its setpoint.
+it, with exact ray casts (unit tests); `wall_world`: the same shape as a sim.world World
+(the servers of the UDP tests). `Tracker`: a vehicle model exactly at its setpoint.
 `Client`: a plain pymavlink (mavutil) client with small conveniences.
 """
 
@@ -20,6 +21,8 @@ from companion.planner.sensors import SensorSpec
 from companion.planner.types import FloatArray, Setpoint, VehicleState
 from companion.tuning import SensorConfig
 from sim.mavlink import MavlinkSimConfig, SimServer
+from sim.vehicle import IdealTracker
+from sim.world import World, WorldConfig
 
 
 class PlaneAndWall:
@@ -76,11 +79,18 @@ def sensors() -> list[SensorSpec]:
     return [c.to_spec() for c in cfgs]
 
 
+def wall_world(wall_x: float = 10.0, wall_h: float = 8.0, floor_z: float = 0.0) -> World:
+    """sim.world's World shaped like PlaneAndWall: a 2 m thick, 200 m wide box from wall_x."""
+    box = {"type": "box", "center": [wall_x + 1.0, 0.0], "size_m": [2.0, 200.0, wall_h]}
+    return World.from_config(WorldConfig.model_validate({"ground_z_m": floor_z, "features": [box]}))
+
+
 def make_server(**overrides: Any) -> SimServer:
-    """A server on 127.0.0.1, any port, fast, with the stand-in world and sensors."""
-    world = overrides.pop("world", None) or PlaneAndWall()
+    """A server on 127.0.0.1, any port, fast: sim.world's World (a wall 10 m east of home),
+    sim.vehicle's IdealTracker, the sensors above."""
+    world = overrides.pop("world", None) or wall_world()
     fields: dict[str, Any] = {"port": 0, "speedup": 20.0, "prearm_delay_s": 0.2, **overrides}
-    return SimServer(MavlinkSimConfig.model_validate(fields), world, sensors(), Tracker)
+    return SimServer(MavlinkSimConfig.model_validate(fields), world, sensors(), IdealTracker)
 
 
 class Client:
