@@ -6,7 +6,7 @@ STAMP := $(VENV)/.installed
 SCENARIO ?= config/scenarios/paper.yaml
 OUT ?= out/paper
 
-.PHONY: demo test lint typecheck pytest bench clean
+.PHONY: demo simulate test lint typecheck pytest bench clean
 
 $(STAMP): pyproject.toml
 	$(PY) -m venv $(VENV)
@@ -15,6 +15,9 @@ $(STAMP): pyproject.toml
 	touch $(STAMP)
 
 demo: $(STAMP)
+	$(BIN)/companion fly $(SCENARIO) --out $(OUT)
+
+simulate: $(STAMP)
 	$(BIN)/companion simulate $(SCENARIO) --out $(OUT)
 
 test: $(STAMP) lint typecheck pytest

@@ -27,6 +27,20 @@ def _parser() -> argparse.ArgumentParser:
     simulate.add_argument("scenario", type=Path, help="scenario YAML file")
     simulate.add_argument("--out", type=Path, required=True, help="output directory")
     simulate.add_argument("--no-plots", action="store_true", help="skip the figures")
+
+    fly = sub.add_parser(
+        "fly",
+        help="fly a scenario through the service against the MAVLink simulator over UDP",
+    )
+    fly.add_argument("scenario", type=Path, help="scenario YAML file")
+    fly.add_argument("--out", type=Path, required=True, help="output directory")
+    fly.add_argument(
+        "--autopilot",
+        choices=("ardupilot", "px4", "ardusub"),
+        default=None,
+        help="simulator personality (default: the scenario's, else ardupilot)",
+    )
+    fly.add_argument("--no-plots", action="store_true", help="skip the figures")
     return parser
 
 
@@ -47,6 +61,15 @@ def main(argv: Sequence[str] | None = None) -> int:
 
             try:
                 return simulate(args.scenario, args.out, plots=not args.no_plots)
+            except ScenarioError as exc:
+                print(f"error: {exc}", file=sys.stderr)
+                return 2
+        if args.command == "fly":
+            from sim.fly import fly
+            from sim.scenario import ScenarioError
+
+            try:
+                return fly(args.scenario, args.out, args.autopilot, plots=not args.no_plots)
             except ScenarioError as exc:
                 print(f"error: {exc}", file=sys.stderr)
                 return 2

@@ -40,6 +40,7 @@ class Expectation(BaseModel):
     reached_goal: bool | None = None
     min_clearance_m: Finite | None = None
     max_abs_pitch_rad: Finite | None = None
+    """Bound on |phi_d| (eq. 4, the paper's Fig. 7c) and on the vehicle's own pitch."""
     max_height_error_m: Finite | None = None
     max_speed_error_mps: Finite | None = None
     final_heading_deg: Finite | None = None

@@ -78,8 +78,14 @@ class VehicleModelConfig(BaseModel):
     max_yaw_rate_rad_s: float = Field(1.5, gt=0.0)
 
 
+_ALONG_MPS = 0.05
+
+
 class IdealTracker:
-    """Perfect tracking: position = setpoint.position_enu, yaw/pitch = setpoint's, roll 0."""
+    """Perfect tracking, the paper's assumption: position = setpoint.position_enu, yaw the
+    setpoint's, roll 0, and pitch along the trajectory's tangent: from the velocity
+    feed-forward when there is one (a MAVLink position target carries no pitch), else the
+    setpoint's pitch."""
 
     def __init__(self, initial: VehicleState) -> None:
         self._state = initial
@@ -91,10 +97,15 @@ class IdealTracker:
     def step(self, setpoint: Setpoint, dt_s: float) -> VehicleState:
         """Jump to the setpoint; dt_s (s) is only checked."""
         _check_dt(dt_s)
+        v = np.asarray(setpoint.velocity_enu, dtype=np.float64)
+        horizontal = math.hypot(float(v[0]), float(v[1]))
+        # Only while moving along: a vertical climb (take-off) is not a 90-degree pitch.
+        moving = horizontal > _ALONG_MPS and bool(np.all(np.isfinite(v)))
+        pitch = math.atan2(float(v[2]), horizontal) if moving else float(setpoint.pitch_rad)
         self._state = VehicleState(
             position_enu=np.asarray(setpoint.position_enu, dtype=np.float64).copy(),
             roll_rad=0.0,
-            pitch_rad=float(setpoint.pitch_rad),
+            pitch_rad=pitch,
             yaw_rad=_wrap_pi(float(setpoint.yaw_rad)),
         )
         return self._state

@@ -41,6 +41,7 @@ def test_expected_outcome(flown: tuple) -> None:  # type: ignore[type-arg]
     if e.min_clearance_m is not None:
         assert m["min_clearance_m"] >= e.min_clearance_m
     if e.max_abs_pitch_rad is not None:
+        assert m["max_abs_phi_d_rad"] <= e.max_abs_pitch_rad + 1e-9
         assert m["max_abs_pitch_rad"] <= e.max_abs_pitch_rad + 1e-9
     if e.max_height_error_m is not None:
         assert m["max_height_error_m"] <= e.max_height_error_m

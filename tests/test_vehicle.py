@@ -32,8 +32,13 @@ def test_ideal_tracker_reproduces_setpoint() -> None:
     s = Setpoint(np.array([3.0, -2.0, 5.5]), np.array([1.0, 0.0, 0.2]), 0.7, -0.3)
     state = v.step(s, 0.1)
     np.testing.assert_array_equal(state.position_enu, s.position_enu)
-    assert (state.roll_rad, state.pitch_rad, state.yaw_rad) == (0.0, -0.3, 0.7)
+    # Pitch along the trajectory's tangent (the velocity), as the paper assumes.
+    assert (state.roll_rad, state.yaw_rad) == (0.0, 0.7)
+    assert state.pitch_rad == pytest.approx(math.atan2(0.2, 1.0))
     assert v.state is state
+    # Hovering or climbing straight up: the setpoint's own pitch.
+    still = Setpoint(s.position_enu, np.array([0.0, 0.0, 1.0]), 0.7, -0.3)
+    assert v.step(still, 0.1).pitch_rad == -0.3
     with pytest.raises(ValueError, match="dt_s"):
         v.step(s, -0.1)
 

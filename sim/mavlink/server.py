@@ -248,7 +248,11 @@ class SimServer:
         if start is None:
             x, y = scenario.route.points[0]
             start = (x, y, 0.0)
-        return cls(config, world, specs, factory, start_position_enu=start, bind=bind)
+        # Facing along the route's start heading, as the in-process closed loop starts.
+        yaw = scenario.route_obj().start_heading_rad
+        return cls(
+            config, world, specs, factory, start_position_enu=start, start_yaw_rad=yaw, bind=bind
+        )
 
     # ------------------------------------------------------------------- life cycle
     async def start(self) -> None:

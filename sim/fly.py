@@ -1,0 +1,251 @@
+"""`companion fly`: the companion service flying a scenario against sim/'s MAVLink simulator.
+
+Two asyncio endpoints in one process, talking real MAVLink 2 over UDP loopback: the
+simulator (ArduPilot or PX4 personality, lockstep, as fast as the machine allows) and the
+service (sim-time mode, auto start: arm, take off to the scenario's start height, switch to
+GUIDED/OFFBOARD, fly the route). Afterwards the service's flight log and the simulator's true
+states become the same trace, metrics and figures as `companion simulate`.
+
+Frames: the simulator's world ENU; the service's ENU is anchored at home (the vehicle's
+take-off point), so route points and logged positions are shifted by home's world position.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import math
+import sys
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, TextIO
+
+import numpy as np
+
+from companion.config import parse_config
+from companion.service import Service
+from companion.service.flightlog import FlightLog, read_flight_log
+from companion.service.link import UdpOutLink
+from companion.service.notify import SystemdNotifier
+from sim import metrics as metrics_mod
+from sim.closed_loop import TRACE_COLUMNS, RunResult
+from sim.mavlink import SimServer
+from sim.runner import write_outputs
+from sim.scenario import Scenario, load_scenario
+from sim.world import World
+
+
+@dataclass
+class FlyResult:
+    result: RunResult
+    metrics: dict[str, Any]
+    counters: dict[str, int]
+    lockstep_stalls: int
+    log_path: Path | None
+
+
+def service_config(scenario: Scenario, port: int, home_xy: np.ndarray, log_dir: Path) -> Any:
+    """The service configuration that flies `scenario` against the simulator on `port`."""
+    start_z = scenario.start_position[2] if scenario.start_position else scenario.planner.h_d_m
+    points = (np.array(scenario.route.points[1:], dtype=float) - home_xy).tolist()
+    return parse_config(
+        {
+            "link": {"connection": f"udpout:127.0.0.1:{port}"},
+            "autopilot": {
+                "streams_hz": {
+                    "ATTITUDE": 50.0,
+                    "GLOBAL_POSITION_INT": 50.0,
+                    "DISTANCE_SENSOR": 50.0,
+                }
+            },
+            "control": {
+                "time_source": "sim",
+                "rate_hz": 1.0 / scenario.dt_s,
+                "auto_start": {"enabled": True, "takeoff_alt_m": float(start_z)},
+            },
+            "route": {
+                "source": "config",
+                "points": points,
+                "arrival_heading_deg": scenario.route.arrival_heading_deg,
+            },
+            "planner": scenario.planner.model_dump(),
+            "sensors": [s.model_dump(exclude_none=True) for s in scenario.sensors],
+            "logging": {"flight_log_dir": str(log_dir), "level": "warning"},
+        }
+    )
+
+
+async def fly_async(
+    scenario: Scenario,
+    base_dir: Path,
+    out_dir: Path,
+    personality: str | None = None,
+    progress: Any = None,
+) -> FlyResult:
+    """Fly the scenario through the service; returns the trace, metrics and link figures."""
+    overrides: dict[str, Any] = {
+        "port": 0,
+        "speedup": math.inf,
+        "lockstep": {"enabled": True, "period_s": scenario.dt_s},
+        "prearm_delay_s": 0.5,
+    }
+    if personality is not None:
+        overrides["personality"] = personality
+    server = SimServer.from_scenario(scenario, base_dir, **overrides)
+    await server.start()
+    home_xy = np.array(server.autopilot.home_enu[:2], dtype=float)
+    log_dir = out_dir / "flightlog"
+    cfg = service_config(scenario, server.port, home_xy, log_dir)
+    service = Service(cfg, UdpOutLink("127.0.0.1", server.port), notifier=SystemdNotifier({}))
+    task = asyncio.create_task(service.run())
+    goal = np.array(scenario.route.points[-1], dtype=float)
+    try:
+        t = 0.0
+        while t < scenario.duration_s and not service.route_finished.is_set():
+            t = min(t + 5.0, scenario.duration_s)
+            await server.run_until(t)
+            if task.done():
+                break
+            if progress is not None and server.truth:
+                pos = server.truth[-1].position_enu
+                progress(t, float(np.hypot(*(np.asarray(pos[:2]) - goal))))
+    finally:
+        service.stop()
+        await asyncio.wait_for(task, 10.0)
+        await server.close()
+    logs = sorted(log_dir.glob("flight-*.jsonl"))
+    log = read_flight_log(logs[-1]) if logs else None
+    world = World.from_config(scenario.world, base_dir)
+    truth_t = np.array([s.t_s for s in server.truth])
+    truth_pose = np.array(
+        [[*s.position_enu, s.roll_rad, s.pitch_rad, s.yaw_rad] for s in server.truth]
+    )
+    home = np.array(server.autopilot.home_enu, dtype=float)
+    if log is None or len(truth_t) == 0:
+        raise RuntimeError("the flight produced no log or no simulator states")
+    result = trace_from_log(log, world, home, truth_t, truth_pose)
+    result.finished = bool(service.route_finished.is_set())
+    m = metrics_mod.compute(
+        result.trace,
+        scenario.route_obj(),
+        world,
+        scenario.planner.h_d_m,
+        scenario.planner.v_d_mps,
+        result.finished,
+    )
+    return FlyResult(result, m, service.counter_values(), server.stats.lockstep_stalls, logs[-1])
+
+
+def trace_from_log(
+    log: FlightLog,
+    world: World | None,
+    home_enu: np.ndarray,
+    truth_t: np.ndarray | None = None,
+    truth_pose: np.ndarray | None = None,
+) -> RunResult:
+    """A trace (TRACE_COLUMNS) from the planner cycles of a flight log.
+
+    Positions are shifted from the service's home-anchored ENU into the world frame by
+    home_enu. With the simulator's true poses (truth_t, truth_pose rows x, y, z, roll,
+    pitch, yaw) the vehicle columns are the truth at each cycle's time, else what the
+    service received. With a world, clearance and height are the true distances.
+    """
+    rows = [i for i, kind in enumerate(log.setpoint_kind) if kind == "planner"]
+    if not rows:
+        raise RuntimeError("the flight log holds no planner cycles")
+    idx = np.array(rows)
+    t = log.t_s[idx]
+    if truth_t is not None and truth_pose is not None:
+        j = np.clip(np.searchsorted(truth_t, t - 1e-9), 0, len(truth_t) - 1)
+        pose = truth_pose[j]
+    else:
+        pose = np.column_stack([log.position_enu[idx] + home_enu, log.rpy_rad[idx]])
+    sp = log.setpoint_position_enu[idx] + home_enu
+    dt = np.diff(t, prepend=t[0] - (t[1] - t[0] if len(t) > 1 else 0.05))
+    speed = np.linalg.norm(np.diff(sp, axis=0, prepend=sp[:1]), axis=1) / np.maximum(dt, 1e-9)
+    speed[0] = log.speed_ref_mps[idx][0] if len(log.speed_ref_mps) else 0.0
+    phi = log.phi_star_rad[idx] if log.phi_star_rad.size else np.zeros((len(idx), 1))
+    thr = log.phi_star_threshold_rad[idx] if log.phi_star_threshold_rad.size else phi * 0
+    worst = np.argmax(np.nan_to_num(phi - thr, nan=-np.inf), axis=1)
+    nan = np.full(len(idx), np.nan)
+
+    def strings(values: list[str | None]) -> np.ndarray:
+        return np.array([values[i] or "" for i in idx], dtype=object)
+
+    if world is not None:
+        clearance = np.array([world.obstacle_distance(p) for p in pose[:, :3]])
+        height = np.array([world.surface_distance(p) for p in pose[:, :3]])
+    else:
+        clearance, height = nan.copy(), nan.copy()
+    trace: dict[str, np.ndarray] = {
+        "t": t,
+        "x": pose[:, 0],
+        "y": pose[:, 1],
+        "z": pose[:, 2],
+        "roll": pose[:, 3],
+        "pitch": pose[:, 4],
+        "yaw": pose[:, 5],
+        "xd": sp[:, 0],
+        "yd": sp[:, 1],
+        "zd": sp[:, 2],
+        "yaw_d": log.setpoint_yaw_rad[idx],
+        "phi_d": log.phi_d_rad[idx] if len(log.phi_d_rad) else nan,
+        "phi_star_max": np.nanmax(phi, axis=1) if phi.size else nan,
+        "phi_star_threshold": thr[np.arange(len(idx)), worst] if thr.size else nan,
+        "decision": strings(log.decision),
+        "mode": strings(log.path_mode),
+        "side": strings(log.side),
+        "min_range": np.nan_to_num(log.min_range_m[idx], nan=0.0),
+        "clearance": clearance,
+        "height": height,
+        "speed_ref": log.speed_ref_mps[idx] if len(log.speed_ref_mps) else nan,
+        "speed_xd": speed,
+        "segment": nan,
+        "parameter": nan,
+        "replanned": log.replanned[idx].astype(float) if len(log.replanned) else nan,
+    }
+    assert set(trace) == set(TRACE_COLUMNS)
+    events = [(tt, e) for tt, e in log.events]
+    return RunResult(
+        trace=trace,
+        phi_star=phi,
+        thresholds=thr[-1] if thr.size else np.zeros(0),
+        events=events,
+        finished=bool(log.finished[idx].any()),
+        memory_xy=np.empty((0, 2)),
+    )
+
+
+def fly(
+    scenario_path: Path,
+    out_dir: Path,
+    personality: str | None = None,
+    plots: bool = True,
+    stream: TextIO = sys.stdout,
+) -> int:
+    """`companion fly`: run, print the metrics table and link figures, write the outputs."""
+    scenario = load_scenario(scenario_path)
+    interactive = stream.isatty()
+
+    def progress(t: float, to_goal: float) -> None:
+        if interactive:
+            stream.write(f"\r  simulated t = {t:7.1f} s   distance to goal {to_goal:7.1f} m")
+            stream.flush()
+
+    flown = asyncio.run(fly_async(scenario, scenario_path.parent, out_dir, personality, progress))
+    if interactive:
+        stream.write("\r" + " " * 70 + "\r")
+    world = World.from_config(scenario.world, scenario_path.parent)
+    written = write_outputs(out_dir, scenario, world, flown.result, flown.metrics, plots)
+    c = flown.counters
+    stream.write(
+        f"scenario {scenario.name} flown through the service over UDP MAVLink "
+        f"(lockstep stalls {flown.lockstep_stalls}, setpoints sent "
+        f"{c.get('setpoints_sent', c.get('service.setpoints_sent', 0))})\n"
+    )
+    stream.write(metrics_mod.format_table(flown.metrics) + "\n")
+    for t, text in flown.result.events:
+        stream.write(f"  {t:8.2f} s  {text}\n")
+    if flown.log_path is not None:
+        written.append(flown.log_path)
+    stream.write("wrote " + ", ".join(str(p) for p in written) + "\n")
+    return 0 if flown.metrics["reached_goal"] else 1

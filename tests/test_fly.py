@@ -1,0 +1,33 @@
+"""`companion fly`: the paper scenario through the service and the MAVLink simulator over UDP
+loopback (lockstep) meets the same outcome as in process."""
+
+import asyncio
+import math
+from pathlib import Path
+
+import pytest
+
+from sim.fly import fly_async
+from sim.scenario import load_scenario
+
+pytestmark = [pytest.mark.sim, pytest.mark.slow, pytest.mark.timeout(180)]
+
+SCENARIOS = Path(__file__).resolve().parents[1] / "config" / "scenarios"
+
+
+@pytest.mark.parametrize("autopilot", ["ardupilot", "px4"])
+def test_paper_through_the_service(autopilot: str, tmp_path: Path) -> None:
+    scenario = load_scenario(SCENARIOS / "paper.yaml")
+    flown = asyncio.run(fly_async(scenario, SCENARIOS, tmp_path, autopilot))
+    m, e = flown.metrics, scenario.expect
+    assert flown.lockstep_stalls == 0
+    assert m["reached_goal"]
+    assert m["collisions"] == 0
+    assert m["min_clearance_m"] >= scenario.planner.d_min_m
+    assert m["max_abs_phi_d_rad"] <= scenario.planner.phi_max_rad + 1e-9
+    assert m["max_height_error_m"] <= 0.15
+    assert m["max_speed_error_mps"] <= 0.02
+    assert m["final_heading_error_rad"] <= math.radians(1.0)
+    assert m["passed_side"]["sharp hill"] == "left"
+    assert m["max_lateral_deviation_m"]["smooth hill"] < e.max_lateral_deviation_over_m
+    assert flown.log_path is not None and flown.log_path.stat().st_size > 0
