@@ -41,6 +41,13 @@ def _parser() -> argparse.ArgumentParser:
         help="simulator personality (default: the scenario's, else ardupilot)",
     )
     fly.add_argument("--no-plots", action="store_true", help="skip the figures")
+
+    report = sub.add_parser("report", help="plots (and metrics) of a flight log")
+    report.add_argument("log", type=Path, help="flight log (.jsonl) written by the service")
+    report.add_argument("--out", type=Path, required=True, help="output directory")
+    report.add_argument(
+        "--scenario", type=Path, default=None, help="the scenario it was flown in (from fly)"
+    )
     return parser
 
 
@@ -64,6 +71,10 @@ def main(argv: Sequence[str] | None = None) -> int:
             except ScenarioError as exc:
                 print(f"error: {exc}", file=sys.stderr)
                 return 2
+        if args.command == "report":
+            from sim.fly import report
+
+            return report(args.log, args.out, args.scenario)
         if args.command == "fly":
             from sim.fly import fly
             from sim.scenario import ScenarioError

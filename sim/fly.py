@@ -249,3 +249,77 @@ def fly(
         written.append(flown.log_path)
     stream.write("wrote " + ", ".join(str(p) for p in written) + "\n")
     return 0 if flown.metrics["reached_goal"] else 1
+
+
+def report(
+    log_path: Path,
+    out_dir: Path,
+    scenario_path: Path | None = None,
+    plots: bool = True,
+    stream: TextIO = sys.stdout,
+) -> int:
+    """`companion report`: the plots and metrics of a flight log.
+
+    Without a scenario the world is unknown (a real flight): the figures show the flown path,
+    the route and the planner's signals over flat ground, and the metrics that need the true
+    surface (clearance, height) are not available. With the scenario the log was flown in
+    (by `companion fly`), positions are placed in its world and all metrics are computed.
+    """
+    from companion.planner.route import Route
+
+    log = read_flight_log(log_path)
+    if not log.routes:
+        stream.write(f"{log_path}: no planner route in this log (the planner never started)\n")
+        return 1
+    first = log.routes[0]
+    points = np.array(first["points"], dtype=float)
+    scenario = load_scenario(scenario_path) if scenario_path is not None else None
+    if scenario is not None:
+        assert scenario_path is not None
+        world: World | None = World.from_config(scenario.world, scenario_path.parent)
+        # Home is where the vehicle took off: the scenario's first base point, on the ground.
+        x0, y0 = scenario.route.points[0]
+        home = np.array([x0, y0, float(world.height(x0, y0)) if world else 0.0])
+    else:
+        world, home = None, np.zeros(3)
+    route = Route(
+        points + home[:2], first.get("start_heading_rad"), first.get("arrival_heading_rad")
+    )
+    result = trace_from_log(log, world, home)
+    shown_world = world if world is not None else World()
+    params = (
+        scenario.planner.model_dump()
+        if scenario is not None
+        else dict(log.header.get("config", {}).get("planner", {}))
+    )
+    h_d, v_d = float(params.get("h_d_m", 2.0)), float(params.get("v_d_mps", 1.0))
+    out_dir.mkdir(parents=True, exist_ok=True)
+    written: list[Path] = []
+    if world is not None:
+        m = metrics_mod.compute(result.trace, route, world, h_d, v_d, result.finished)
+        stream.write(metrics_mod.format_table(m) + "\n")
+    if plots:
+        from sim.plots import write_figures
+
+        written += write_figures(
+            out_dir,
+            shown_world,
+            route,
+            result.trace,
+            {
+                "h_d_m": h_d,
+                "d_min_m": float(params.get("d_min_m", 2.0)),
+                "phi_max_rad": float(params.get("phi_max_rad", 0.6)),
+                "v_d_mps": v_d,
+            },
+            phi_star=result.phi_star,
+            thresholds=result.thresholds,
+            events=result.events,
+            title=log_path.name,
+        )
+    for t, text in result.events:
+        stream.write(f"  {t:8.2f} s  {text}\n")
+    stream.write(
+        f"{len(result.trace['t'])} planner cycles; wrote " + ", ".join(map(str, written)) + "\n"
+    )
+    return 0

@@ -2,6 +2,7 @@
 loopback (lockstep) meets the same outcome as in process."""
 
 import asyncio
+import io
 import math
 from pathlib import Path
 
@@ -31,3 +32,22 @@ def test_paper_through_the_service(autopilot: str, tmp_path: Path) -> None:
     assert m["passed_side"]["sharp hill"] == "left"
     assert m["max_lateral_deviation_m"]["smooth hill"] < e.max_lateral_deviation_over_m
     assert flown.log_path is not None and flown.log_path.stat().st_size > 0
+
+
+def test_report_turns_the_flight_log_into_the_same_plots(tmp_path: Path) -> None:
+    from sim.fly import report
+
+    scenario = load_scenario(SCENARIOS / "smooth-hill.yaml")
+    flown = asyncio.run(fly_async(scenario, SCENARIOS, tmp_path / "fly", "ardupilot"))
+    assert flown.log_path is not None
+    out = io.StringIO()
+    code = report(flown.log_path, tmp_path / "rep", SCENARIOS / "smooth-hill.yaml", stream=out)
+    assert code == 0
+    for name in ("fig6.png", "fig7.png"):
+        assert (tmp_path / "rep" / name).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    assert "reached goal" in out.getvalue() and "planner cycles" in out.getvalue()
+    # Without the scenario (a real flight): plots, no metrics that need the true surface.
+    out = io.StringIO()
+    assert report(flown.log_path, tmp_path / "rep2", stream=out) == 0
+    assert "reached goal" not in out.getvalue()
+    assert (tmp_path / "rep2" / "fig7.png").exists()

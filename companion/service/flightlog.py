@@ -13,6 +13,8 @@ file is a header record; then records by `type`:
      "min_range": m | null, "phi_star": [rad, ...] | null, "phi_star_threshold": [rad, ...]
      | null, "phi_d": rad | null, "v_ref": m/s | null, "replanned": bool, "finished": bool,
      "events": [str, ...]}
+    {"type": "route", "t": .., "points": [[x, y], ...], "start_heading_rad": ..,
+     "arrival_heading_rad": ..}   (each time the planner starts on a route)
     {"type": "counters", "t": .., "counters": {name: n, ...}}
 
 Frames as the planner's: local ENU metres anchored at home, yaw counter-clockwise from east,
@@ -194,6 +196,8 @@ class FlightLog:
     replanned: np.ndarray = field(default_factory=lambda: np.empty(0, dtype=bool))
     events: list[tuple[float, str]] = field(default_factory=list)
     frames: list[dict[str, Any]] = field(default_factory=list)
+    routes: list[dict[str, Any]] = field(default_factory=list)
+    """Each route the planner started on: base points (home ENU) and headings."""
     counters: dict[str, int] = field(default_factory=dict)
 
     def __len__(self) -> int:
@@ -204,6 +208,7 @@ def read_flight_log(path: Path) -> FlightLog:
     """Read a flight log file (see the module docstring for the format)."""
     header: dict[str, Any] = {}
     frames: list[dict[str, Any]] = []
+    routes: list[dict[str, Any]] = []
     counters: dict[str, int] = {}
     events: list[tuple[float, str]] = []
     rows: list[dict[str, Any]] = []
@@ -213,6 +218,8 @@ def read_flight_log(path: Path) -> FlightLog:
             header = rec
         elif kind == "frame":
             frames.append(rec)
+        elif kind == "route":
+            routes.append(rec)
         elif kind == "counters":
             counters = dict(rec.get("counters", {}))
         elif kind == "cycle":
@@ -262,5 +269,6 @@ def read_flight_log(path: Path) -> FlightLog:
         replanned=np.array([bool(r.get("replanned", False)) for r in rows], dtype=bool),
         events=events,
         frames=frames,
+        routes=routes,
         counters=counters,
     )

@@ -786,6 +786,16 @@ class Service:
             None if arrival is None else math.radians(arrival),
         )
         self.planner = self.planner_factory(self.params, self.sensors, route, state.position_enu)
+        if self.flight_log is not None:
+            self.flight_log.write(
+                {
+                    "type": "route",
+                    "t": self.clock.now(),
+                    "points": route.base_points,
+                    "start_heading_rad": route.start_heading_rad,
+                    "arrival_heading_rad": route.arrival_heading_rad,
+                }
+            )
         self._seg_start = here.copy()
         self._planner_t = None
         self.last_setpoint = None  # X_d starts at the vehicle: nothing to compare on resume
