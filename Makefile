@@ -9,6 +9,10 @@ OUT ?= out/paper
 .PHONY: demo simulate test lint typecheck pytest bench clean
 
 $(STAMP): pyproject.toml
+	@$(PY) -c 'import ensurepip' 2>/dev/null || { \
+	  echo "$(PY) has no venv support: installing Debian's $(PY)-venv"; \
+	  if [ "$$(id -u)" = 0 ]; then apt-get install -y $(PY)-venv; \
+	  else sudo apt-get install -y $(PY)-venv; fi; }
 	$(PY) -m venv $(VENV)
 	$(BIN)/pip install --quiet --upgrade pip
 	$(BIN)/pip install --quiet -e '.[dev]'
