@@ -124,14 +124,7 @@ async def fly_async(
         raise RuntimeError("the flight produced no log or no simulator states")
     result = trace_from_log(log, world, home, truth_t, truth_pose)
     result.finished = bool(service.route_finished.is_set())
-    m = metrics_mod.compute(
-        result.trace,
-        scenario.route_obj(),
-        world,
-        scenario.planner.h_d_m,
-        scenario.planner.v_d_mps,
-        result.finished,
-    )
+    m = metrics_mod.for_run(scenario, world, result)
     return FlyResult(result, m, service.counter_values(), server.stats.lockstep_stalls, logs[-1])
 
 

@@ -19,7 +19,7 @@
 from __future__ import annotations
 
 import math
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -27,6 +27,10 @@ from companion.planner.frames import wrap_pi
 from companion.planner.path import project
 from companion.planner.route import Route
 from sim.world import World
+
+if TYPE_CHECKING:
+    from sim.closed_loop import RunResult
+    from sim.scenario import Scenario
 
 SETTLE_BAND_M = 0.15
 
@@ -108,6 +112,18 @@ def compute(
         "max_lateral_deviation_m": deviation,
         "passed_side": sides,
     }
+
+
+def for_run(scenario: Scenario, world: World, result: RunResult) -> dict[str, Any]:
+    """`compute` with the scenario's route, H_d and v_d."""
+    return compute(
+        result.trace,
+        scenario.route_obj(),
+        world,
+        scenario.planner.h_d_m,
+        scenario.planner.v_d_mps,
+        result.finished,
+    )
 
 
 METRIC_ROWS = (

@@ -83,14 +83,7 @@ def simulate(
     result = run(scenario, world, progress=progress)
     if interactive:
         stream.write("\r" + " " * 60 + "\r")
-    m = metrics_mod.compute(
-        result.trace,
-        scenario.route_obj(),
-        world,
-        scenario.planner.h_d_m,
-        scenario.planner.v_d_mps,
-        result.finished,
-    )
+    m = metrics_mod.for_run(scenario, world, result)
     written = write_outputs(out_dir, scenario, world, result, m, plots)
     stream.write(f"scenario {scenario.name}: {scenario.description}\n")
     stream.write(metrics_mod.format_table(m) + "\n")

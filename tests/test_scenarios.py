@@ -19,14 +19,7 @@ def flown(request: pytest.FixtureRequest) -> tuple:  # type: ignore[type-arg]
     scenario = load_scenario(path)
     world = World.from_config(scenario.world, path.parent)
     result = run(scenario, world)
-    m = metrics_mod.compute(
-        result.trace,
-        scenario.route_obj(),
-        world,
-        scenario.planner.h_d_m,
-        scenario.planner.v_d_mps,
-        result.finished,
-    )
+    m = metrics_mod.for_run(scenario, world, result)
     return scenario, m, result
 
 
@@ -82,7 +75,7 @@ def test_paper_with_a_multicopter_that_lags() -> None:
     )
     world = World.from_config(scenario.world, path.parent)
     result = run(scenario, world)
-    m = metrics_mod.compute(result.trace, scenario.route_obj(), world, 2.0, 1.0, result.finished)
+    m = metrics_mod.for_run(scenario, world, result)
     assert m["reached_goal"]
     assert m["min_clearance_m"] >= scenario.planner.d_min_m
     assert m["collisions"] == 0
