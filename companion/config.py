@@ -32,7 +32,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_valida
 
 from companion.planner.sensors import SensorTable
 from companion.service.link import LinkSpec, parse_connection
-from companion.tuning import PlannerConfig, SensorConfig, sensor_table
+from companion.tuning import PlannerConfig, SensorConfig, include_sensors_file, sensor_table
 
 Finite = Annotated[float, Field(allow_inf_nan=False)]
 Positive = Annotated[float, Field(gt=0, allow_inf_nan=False)]
@@ -385,6 +385,11 @@ def load_config(path: Path) -> ServiceConfig:
         where = f"line {mark.line + 1}, column {mark.column + 1}: " if mark is not None else ""
         problem = getattr(exc, "problem", None) or str(exc)
         raise ConfigError(path, [f"(YAML) {where}{problem}"]) from None
+    if isinstance(data, dict):
+        try:
+            include_sensors_file(data, path.parent)
+        except ValueError as exc:
+            raise ConfigError(path, [str(exc)]) from None
     return parse_config(data, path)
 
 

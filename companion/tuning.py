@@ -8,9 +8,11 @@ plain data (`PlannerParams`, `SensorSpec`, `Route`) with a `to_...` method.
 from __future__ import annotations
 
 import math
-from typing import Annotated
+from pathlib import Path
+from typing import Annotated, Any
 
 import numpy as np
+import yaml
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
 from companion.planner.params import ArcMethod, PlannerParams
@@ -143,6 +145,24 @@ class SensorConfig(Strict):
         return SensorSpec.from_frd(
             self.id, self.role, self.group, u, self.min_range_m, self.max_range_m, self.name
         )
+
+
+def include_sensors_file(data: dict[str, Any], base_dir: Path) -> None:
+    """`sensors: FILE` in a YAML document: replace the name by the list the file holds.
+
+    The path is relative to base_dir (the directory of the document). ValueError names the
+    file and the problem.
+    """
+    name = data.get("sensors")
+    if not isinstance(name, str):
+        return
+    path = base_dir / name
+    try:
+        data["sensors"] = yaml.safe_load(path.read_text(encoding="utf-8"))
+    except OSError as exc:
+        raise ValueError(f"sensors: cannot read {path}: {exc.strerror or exc}") from None
+    except yaml.YAMLError as exc:
+        raise ValueError(f"sensors: {path} is not valid YAML: {exc}") from None
 
 
 def sensor_table(sensors: list[SensorConfig]) -> SensorTable:

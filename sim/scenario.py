@@ -16,7 +16,14 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError
 from companion.planner.params import PlannerParams
 from companion.planner.route import Route
 from companion.planner.sensors import SensorTable
-from companion.tuning import Finite, PlannerConfig, RouteConfig, SensorConfig, sensor_table
+from companion.tuning import (
+    Finite,
+    PlannerConfig,
+    RouteConfig,
+    SensorConfig,
+    include_sensors_file,
+    sensor_table,
+)
 from sim.vehicle import VehicleModelConfig
 from sim.world import World, WorldConfig
 
@@ -110,13 +117,10 @@ def load_scenario(path: Path | str) -> Scenario:
         raise ScenarioError(f"{p}: not valid YAML: {exc}") from exc
     if not isinstance(data, dict):
         raise ScenarioError(f"{p}: expected a mapping at the top level")
-    if isinstance(data.get("sensors"), str):
-        # `sensors: FILE` names a YAML list of sensors, relative to the scenario file.
-        sensors_path = p.parent / data["sensors"]
-        try:
-            data["sensors"] = yaml.safe_load(sensors_path.read_text(encoding="utf-8"))
-        except (OSError, yaml.YAMLError) as exc:
-            raise ScenarioError(f"{p}: sensors: cannot read {sensors_path}: {exc}") from exc
+    try:
+        include_sensors_file(data, p.parent)
+    except ValueError as exc:
+        raise ScenarioError(f"{p}: {exc}") from exc
     try:
         scenario = Scenario.model_validate(data)
         scenario.sensor_table()  # cross-field checks (duplicate ids, missing surface sensors)

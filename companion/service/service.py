@@ -30,7 +30,7 @@ import signal
 import sys
 import time
 from collections import Counter
-from collections.abc import Callable, Mapping
+from collections.abc import Awaitable, Callable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Protocol
@@ -578,8 +578,13 @@ class Service:
         self._say("auto start")
         try:
             if self.kind is AutopilotKind.ARDUPILOT:
-                await self.commands.set_mode(
-                    set_mode_params(self.kind, "guided", self.vehicle_type)
+                # GUIDED is refused until the autopilot has a position estimate: retry.
+                guided = set_mode_params(self.kind, "guided", self.vehicle_type)
+                await self._with_retries(
+                    "GUIDED",
+                    lambda: self.commands.set_mode(guided),
+                    a.arm_timeout_s,
+                    a.arm_retry_s,
                 )
                 if not await self._wait_for(self._guided, 5.0):
                     raise CommandError(176, "mode did not change to GUIDED")
@@ -611,17 +616,23 @@ class Service:
             self._auto_busy = False
             self._priming = False
 
-    async def _arm_with_retries(self, timeout_s: float, retry_s: float) -> None:
+    async def _with_retries(
+        self, what: str, command: Callable[[], Awaitable[Any]], timeout_s: float, retry_s: float
+    ) -> None:
+        """Send a command until the autopilot accepts it or timeout_s (wall clock) passes."""
         deadline = time.monotonic() + timeout_s
         while True:
             try:
-                await self.commands.arm(True)
-                break
+                await command()
+                return
             except CommandError as exc:
                 if time.monotonic() >= deadline:
                     raise
-                log.info("arming refused (%s); retrying", exc)
+                log.info("%s refused (%s); retrying", what, exc)
                 await asyncio.sleep(retry_s)
+
+    async def _arm_with_retries(self, timeout_s: float, retry_s: float) -> None:
+        await self._with_retries("arming", lambda: self.commands.arm(True), timeout_s, retry_s)
         await self._wait_for(lambda: self.tel.heartbeat is not None and self.tel.heartbeat.armed, 3)
 
     def _guided(self) -> bool:
