@@ -196,6 +196,11 @@ class FailsafeConfig(Section):
     resume_after_s: inputs must be good this long before a hold ends.
     max_speed_mps: a position implying a faster jump is rejected as a glitch (accepted
     after jump_accept_s if it persists, e.g. an EKF reset).
+    max_position_jump_m: so is a position this far off the path the reported velocity
+    predicts (more after a gap in the data: 5 m/s^2 times its square).
+    range_median_samples: each range sensor's value is the median of its last this many
+    readings ("nothing detected" counting as farthest): a single spike or dropout of one
+    reading never reaches the planner, at the cost of (n - 1) / 2 readings of delay. 1: off.
     """
 
     position_max_age_s: Positive = 0.5
@@ -205,6 +210,8 @@ class FailsafeConfig(Section):
     resume_after_s: NonNegative = 1.0
     max_speed_mps: Positive = 40.0
     jump_accept_s: Positive = 1.0
+    max_position_jump_m: Positive = 2.0
+    range_median_samples: Annotated[int, Field(ge=1, le=9)] = 3
 
 
 class SigningConfig(Section):

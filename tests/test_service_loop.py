@@ -138,7 +138,8 @@ async def test_mode_change_stops_setpoints_within_one_cycle_and_never_switches_b
 
 
 async def test_pilot_reengage_restarts_planner_from_current_position() -> None:
-    cfg = make_config(failsafe={"max_speed_mps": 1000.0})  # the fake vehicle teleports
+    # the fake vehicle teleports: no jump detection
+    cfg = make_config(failsafe={"max_speed_mps": 1000.0, "max_position_jump_m": 1000.0})
     async with running(cfg=cfg) as (svc, ap, box):
         await until(lambda: svc.configured)
         ap.set_mode(GUIDED)

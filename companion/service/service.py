@@ -46,7 +46,7 @@ from companion.planner.sensors import SensorTable
 from companion.planner.types import FloatArray, Setpoint, StepResult, VehicleState
 from companion.service.clock import MonotonicClock, SimClock
 from companion.service.codec import MavCodec, MAVLinkMessage, mavlink2
-from companion.service.commands import CommandClient, CommandError
+from companion.service.commands import CommandClient, CommandDeniedError, CommandError
 from companion.service.connection import Connection
 from companion.service.failsafe import Assessment, Failsafe, Limits, Verdict, assess
 from companion.service.flightlog import FlightLogWriter
@@ -151,7 +151,11 @@ class Service:
         self.conn.on_unlocked = self._on_unlocked_heartbeat
         fs = config.failsafe
         self.tel = Telemetry(
-            self.sensors, max_speed_mps=fs.max_speed_mps, jump_accept_s=fs.jump_accept_s
+            self.sensors,
+            max_speed_mps=fs.max_speed_mps,
+            jump_accept_s=fs.jump_accept_s,
+            max_jump_m=fs.max_position_jump_m,
+            median_samples=fs.range_median_samples,
         )
         ap = config.autopilot
         self.commands = CommandClient(self.conn, ap.command_timeout_s, ap.command_retries)
@@ -200,6 +204,7 @@ class Service:
         self._finish_handled = False
         self._hold: _Hold | None = None
         self._planner_failed = False
+        self._replan = False
         self._priming = False
         self._auto_busy = False
         self._auto_done = False
@@ -393,13 +398,23 @@ class Service:
             return
         if mtype == "HEARTBEAT":
             self._on_autopilot_heartbeat(t_rx)
-        reboots = self.tel.reboots
+        reboots, jumps = self.tel.reboots, self.tel.jumps_accepted
         self.tel.update(msg, t_rx)
         if self.tel.reboots != reboots:
             log.warning("autopilot time went backwards: reboot? reconfiguring")
             self._reconfigure.set()
+        if self.tel.jumps_accepted != jumps:
+            self._position_jumped()
         if mtype == "HEARTBEAT" and self.ownership.engaged:
             self._update_ownership(self.clock.now(), allow_engage=False)
+
+    def _position_jumped(self) -> None:
+        """The position estimate jumped for good (estimator reset): a hold position and a
+        plan made in the old estimate would move the vehicle by the jump; start afresh."""
+        self._hold = None
+        if self.planner is not None:
+            self._replan = True
+            self._say("position jump: replanning", Severity.WARNING)
 
     def _on_autopilot_heartbeat(self, t_rx: float) -> None:
         last = self._last_hb_rx
@@ -594,7 +609,14 @@ class Service:
             home = self.tel.home
             assert home is not None
             target = alt if self.kind is AutopilotKind.ARDUPILOT else home.alt_amsl_m + alt
-            await self.commands.takeoff(target)
+            try:
+                await self.commands.takeoff(target)
+            except CommandDeniedError:
+                # A retry after a lost ack is refused once the first attempt has the vehicle
+                # climbing (ArduCopter: "already flying"); that is success.
+                if not self._climbing():
+                    raise
+                log.info("take-off retry refused while climbing: the first attempt worked")
             ok = await self._wait_for(
                 lambda: (
                     self.tel.position is not None and self.tel.position.relative_alt_m >= 0.9 * alt
@@ -634,6 +656,10 @@ class Service:
     async def _arm_with_retries(self, timeout_s: float, retry_s: float) -> None:
         await self._with_retries("arming", lambda: self.commands.arm(True), timeout_s, retry_s)
         await self._wait_for(lambda: self.tel.heartbeat is not None and self.tel.heartbeat.armed, 3)
+
+    def _climbing(self) -> bool:
+        pos = self.tel.position
+        return pos is not None and (pos.relative_alt_m > 0.3 or pos.velocity_ned_mps[2] < -0.2)
 
     def _guided(self) -> bool:
         hb = self.tel.heartbeat
@@ -817,7 +843,13 @@ class Service:
         state = self._vehicle_state()
         if state is None:
             return None
-        if self._planner_t is None and self.planner is not None and self.last_setpoint is not None:
+        if self._replan and self.planner is not None:
+            self._replan = False
+            log.info("position jump: restarting the planner from the vehicle")
+            self._start_planner(state)
+        elif (
+            self._planner_t is None and self.planner is not None and self.last_setpoint is not None
+        ):
             # resuming after a hold, stop or release: restart if X_d is far from the vehicle
             gap = float(np.linalg.norm(self.last_setpoint.position_enu - state.position_enu))
             if gap > self.cfg.control.restart_distance_m:

@@ -19,8 +19,9 @@ the cache and is reported via `reboots`.
 
 from __future__ import annotations
 
+import logging
 import math
-from collections import Counter
+from collections import Counter, deque
 from dataclasses import dataclass
 
 import numpy as np
@@ -34,7 +35,13 @@ from companion.planner.sensors import (
 from companion.planner.types import FloatArray
 from companion.service.codec import MAVLinkMessage
 
+log = logging.getLogger("companion.service.telemetry")
+
 REBOOT_BACKSTEP_MS = 3000
+MEDIAN_GAP_S = 0.5
+"""A range history older than this is not filtered with new readings."""
+MAX_ACCEL_MPS2 = 10.0
+"""Acceleration that explains a position off the velocity-predicted path after a gap."""
 ORIENTATION_TOLERANCE_COS = math.cos(math.radians(5.0))
 UINT16_MAX = 65535
 MAV_AUTOPILOT_INVALID = 8
@@ -112,6 +119,19 @@ def valid_lat_lon(lat_deg: float, lon_deg: float) -> bool:
     )
 
 
+def _north_east_m(lat1: float, lon1: float, lat2: float, lon2: float) -> tuple[float, float]:
+    """Local north/east metres from point 1 to point 2 (small distances)."""
+    north = math.radians(lat2 - lat1) * 6_371_000.0
+    dlon = (lon2 - lon1 + 180.0) % 360.0 - 180.0
+    east = math.radians(dlon) * 6_371_000.0 * math.cos(math.radians(0.5 * (lat1 + lat2)))
+    return north, east
+
+
+def _distance_m(last: Position, lat: float, lon: float, alt: float) -> float:
+    d = _haversine_m(last.lat_deg, last.lon_deg, lat, lon)
+    return math.hypot(d, alt - last.alt_amsl_m)
+
+
 def _haversine_m(lat1: float, lon1: float, lat2: float, lon2: float) -> float:
     p1, p2 = math.radians(lat1), math.radians(lat2)
     dp, dl = p2 - p1, math.radians(lon2 - lon1)
@@ -127,11 +147,22 @@ class Telemetry:
     """
 
     def __init__(
-        self, sensors: SensorTable, *, max_speed_mps: float = 40.0, jump_accept_s: float = 1.0
+        self,
+        sensors: SensorTable,
+        *,
+        max_speed_mps: float = 40.0,
+        jump_accept_s: float = 1.0,
+        max_jump_m: float = 2.0,
+        median_samples: int = 1,
     ) -> None:
         self.sensors = sensors
+        self.median_samples = median_samples
         self.max_speed_mps = max_speed_mps
         self.jump_accept_s = jump_accept_s
+        self.max_jump_m = max_jump_m
+        self.jumps_accepted = 0
+        """Position jumps accepted because they persisted (estimator resets): the position
+        the loop works in has moved, so plans and holds made before it are void."""
         self.counters: Counter[str] = Counter()
         self._expected_boresight = [s.boresight_frd for s in sensors.specs]
         self._boresight_cache: dict[int, FloatArray | None] = {}
@@ -145,8 +176,12 @@ class Telemetry:
         self.position: Position | None = None
         self.home: Home | None = None
         self.ranges: list[RangeReading | None] = [None] * len(self.sensors)
+        self._history: list[deque[RangeReading]] = [
+            deque(maxlen=max(1, self.median_samples)) for _ in range(len(self.sensors))
+        ]
         self._last_boot_ms: dict[str, int] = {}
         self._jump_since: float | None = None
+        self._jump_dt = 0.0
 
     # -- dispatch ---------------------------------------------------------------------------
 
@@ -214,22 +249,56 @@ class Telemetry:
             return self._reject("position_range")
         if not self._in_order("GLOBAL_POSITION_INT", int(msg.time_boot_ms)):
             return False
-        last = self.position
-        if last is not None:
-            dt = max((msg.time_boot_ms - last.time_boot_ms) * 1e-3, t_rx - last.t_rx, 0.05)
-            dist = _haversine_m(last.lat_deg, last.lon_deg, lat, lon)
-            dist = math.hypot(dist, alt - last.alt_amsl_m)
-            if dist > self.max_speed_mps * dt:
-                if self._jump_since is None:
-                    self._jump_since = t_rx
-                if t_rx - self._jump_since < self.jump_accept_s:
-                    self._last_boot_ms["GLOBAL_POSITION_INT"] = last.time_boot_ms
-                    return self._reject("position_jump")
-                self.counters["position_jump_accepted"] += 1
-        self._jump_since = None
         vel = (msg.vx * 0.01, msg.vy * 0.01, msg.vz * 0.01)
+        last = self.position
+        if last is not None and self._is_jump(last, lat, lon, alt, vel, msg.time_boot_ms, t_rx):
+            if self._jump_since is None:
+                self._jump_since = t_rx
+                self._jump_dt = max(self._dt(last, msg.time_boot_ms, t_rx), 0.05)
+            if t_rx - self._jump_since < self.jump_accept_s:
+                self._last_boot_ms["GLOBAL_POSITION_INT"] = last.time_boot_ms
+                return self._reject("position_jump")
+            self.counters["position_jump_accepted"] += 1
+            self.jumps_accepted += 1
+            log.warning(
+                "position jump of %.1f m persisted %.1f s: accepted (estimator reset?)",
+                _distance_m(last, lat, lon, alt),
+                t_rx - self._jump_since,
+            )
+        self._jump_since = None
         self.position = Position(lat, lon, alt, rel, vel, int(msg.time_boot_ms), t_rx)
         return True
+
+    def _is_jump(
+        self,
+        last: Position,
+        lat: float,
+        lon: float,
+        alt: float,
+        vel_ned: tuple[float, float, float],
+        time_boot_ms: int,
+        t_rx: float,
+    ) -> bool:
+        """A glitch: faster than max_speed_mps, or off the path the reported velocities
+        predict by more than max_jump_m plus what MAX_ACCEL_MPS2 explains over the gap (the
+        gap at the start of a jump episode: rejected samples do not make it grow)."""
+        dt = self._dt(last, time_boot_ms, t_rx)
+        if _distance_m(last, lat, lon, alt) > self.max_speed_mps * max(dt, 0.05):
+            return True
+        north, east = _north_east_m(last.lat_deg, last.lon_deg, lat, lon)
+        moved = np.array([north, east, last.alt_amsl_m - alt])  # NED
+        expected = 0.5 * (np.asarray(last.velocity_ned_mps) + np.asarray(vel_ned)) * dt
+        residual = float(np.linalg.norm(moved - expected))
+        dt_accel = dt if self._jump_since is None else min(dt, self._jump_dt)
+        return residual > self.max_jump_m + 0.5 * MAX_ACCEL_MPS2 * dt_accel * dt_accel
+
+    @staticmethod
+    def _dt(last: Position, time_boot_ms: int, t_rx: float) -> float:
+        """Seconds since `last`: the autopilot's stamps when both have one, else receipt."""
+        dt_boot = (time_boot_ms - last.time_boot_ms) * 1e-3
+        if time_boot_ms and last.time_boot_ms and dt_boot > 0:
+            return dt_boot
+        return max(t_rx - last.t_rx, 0.0)
 
     def _home(self, msg: MAVLinkMessage, t_rx: float) -> bool:
         lat, lon, alt = msg.latitude * 1e-7, msg.longitude * 1e-7, msg.altitude * 1e-3
@@ -280,8 +349,28 @@ class Telemetry:
         elif d >= hi:
             self.counters["range_at_max"] += 1
             d = 0.0
-        self.ranges[index] = RangeReading(d, int(msg.time_boot_ms), t_rx)
+        raw = RangeReading(d, int(msg.time_boot_ms), t_rx)
+        self.ranges[index] = self._filtered(index, raw)
         return True
+
+    def _filtered(self, index: int, reading: RangeReading) -> RangeReading:
+        """The median of the sensor's last `median_samples` readings (0.0 = nothing, counted
+        as farther than any distance), so a single-reading spike or dropout never reaches
+        the planner; the history restarts after a gap of MEDIAN_GAP_S."""
+        n = self.median_samples
+        if n <= 1:
+            return reading
+        history = self._history[index]
+        if history and reading.t_rx - history[-1].t_rx > MEDIAN_GAP_S:
+            history.clear()
+        history.append(reading)
+        if len(history) < n:
+            return reading
+        ordered = sorted(history, key=lambda r: r.distance_m if r.distance_m > 0 else math.inf)
+        median = ordered[n // 2].distance_m
+        if median != reading.distance_m:
+            self.counters["range_filtered"] += 1
+        return RangeReading(median, reading.time_boot_ms, reading.t_rx)
 
     # -- queries ----------------------------------------------------------------------------
 

@@ -26,6 +26,7 @@ from sim.mavlink.config import (
     ModeChangeFault,
     MotionLimits,
     PersonalityName,
+    PositionJumpFault,
     RebootFault,
     SensorFaultConfig,
 )
@@ -42,6 +43,7 @@ __all__ = [
     "ModeChangeFault",
     "MotionLimits",
     "PersonalityName",
+    "PositionJumpFault",
     "RebootFault",
     "SensorFaultConfig",
     "SimServer",

@@ -24,7 +24,7 @@ from __future__ import annotations
 import math
 from collections import deque
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
@@ -86,6 +86,9 @@ class Autopilot:
         self.texts: list[StatusText] = []
         self.landed = not personality.is_submarine
         self.armed = False
+        self.estimate_offset_enu = np.zeros(3)
+        """Position estimate minus truth (a GPS jump fault): reported positions are shifted
+        by it and received position targets shifted back."""
         self._boot(now_s, start)
 
     # ----------------------------------------------------------------- state and queries
@@ -283,7 +286,7 @@ class Autopilot:
         """Handle SET_POSITION_TARGET_GLOBAL_INT; returns what was decided (for tests/logs)."""
         ctx = self.frame_context
         if self.p.family == "px4":
-            decision = decode_px4(msg, ctx, now_s)
+            decision = self._in_truth(decode_px4(msg, ctx, now_s))
             if decision.outcome is Outcome.ACCEPT:
                 self._stream.append(now_s)
                 self.target = decision.target
@@ -295,7 +298,7 @@ class Autopilot:
             return decision
         if self.mode.behaviour is not Behaviour.GUIDED:
             return Decision(Outcome.IGNORE, reason=f"not in {self.p.guided_mode}")
-        decision = decode_ardupilot(msg, ctx, now_s)
+        decision = self._in_truth(decode_ardupilot(msg, ctx, now_s))
         if self.landed and not self.p.is_submarine:
             return Decision(Outcome.IGNORE, reason="landed: take off first")
         if decision.outcome is Outcome.ACCEPT:
@@ -308,6 +311,14 @@ class Autopilot:
                 self.shaper.position, self.shaper.velocity, self.cfg.limits.accel_mps2
             )
         return decision
+
+    def _in_truth(self, decision: Decision) -> Decision:
+        """A target read in the (shifted) position estimate, moved into the true frame."""
+        target = decision.target
+        if target is None or target.position_enu is None or not self.estimate_offset_enu.any():
+            return decision
+        moved = replace(target, position_enu=target.position_enu - self.estimate_offset_enu)
+        return replace(decision, target=moved)
 
     def _maybe_lift_off(self, target: GuidedTarget) -> None:
         """PX4 OFFBOARD on the ground: a target above the ground (or climbing) lifts off."""

@@ -113,6 +113,13 @@ class LinkFaultConfig(_Strict):
     duplicate_probability: Probability = 0.0
     reorder_probability: Probability = 0.0
     """Chance that a message is held back and delivered after the next one."""
+    windows: list[Window] = Field(default_factory=list)
+    """[start_s, end_s) of simulated time when these faults apply (empty: always)."""
+
+    @field_validator("windows")
+    @classmethod
+    def _windows(cls, v: list[Window]) -> list[Window]:
+        return _check_windows(v)
 
 
 class RebootFault(_Strict):
@@ -130,6 +137,21 @@ class ModeChangeFault(_Strict):
     mode: str | int
 
 
+class PositionJumpFault(_Strict):
+    """The autopilot's position estimate jumps by `offset_m` (ENU metres) at `at_s`: a GPS
+    glitch (`duration_s` given: the estimate comes back after it) or an estimator reset onto
+    a shifted GPS solution (`duration_s` omitted: for the rest of the run).
+
+    The vehicle does not move: the reported GLOBAL_POSITION_INT and LOCAL_POSITION_NED shift,
+    and position targets received meanwhile are read in the shifted estimate (a target at the
+    reported position holds the vehicle where it is), as ArduPilot and PX4 shift their
+    targets on an estimator reset. HOME_POSITION does not move."""
+
+    at_s: NonNegative
+    offset_m: tuple[Finite, Finite, Finite]
+    duration_s: Positive | None = None
+
+
 class FaultsConfig(_Strict):
     """Deterministic fault injection: the same seed gives the same faults."""
 
@@ -142,6 +164,7 @@ class FaultsConfig(_Strict):
     link_cuts: list[Window] = Field(default_factory=list)
     reboots: list[RebootFault] = Field(default_factory=list)
     mode_changes: list[ModeChangeFault] = Field(default_factory=list)
+    position_jumps: list[PositionJumpFault] = Field(default_factory=list)
 
     @field_validator("link_cuts")
     @classmethod

@@ -101,13 +101,18 @@ class LinkFaults(Generic[T]):
             or config.reorder_probability > 0
         )
 
-    def filter(self, item: T) -> list[T]:
-        """Items to deliver now, in order (none, this one, twice, or with a held one)."""
+    def filter(self, item: T, t_s: float | None = None) -> list[T]:
+        """Items to deliver now, in order (none, this one, twice, or with a held one).
+
+        t_s: simulated time, for the config's windows (None: inside)."""
         self.stats.offered += 1
         if not self._active:
             return [item]
         c = self.config
         lose, dup, reorder = self.rng.random(3)
+        if c.windows and t_s is not None and not in_windows(c.windows, t_s):
+            out, self._held = [*self._held, item], []
+            return out
         if lose < c.loss_probability:
             self.stats.dropped += 1
             return []
@@ -148,3 +153,11 @@ class FaultSchedule:
     def mode_changes_in(self, t0_s: float, t1_s: float) -> list[str | int]:
         """Pilot mode changes in [t0, t1)."""
         return [m.mode for m in self.config.mode_changes if t0_s <= m.at_s < t1_s]
+
+    def position_offset(self, t_s: float) -> FloatArray:
+        """How far (ENU metres) the position estimate is off the truth at t_s."""
+        out = np.zeros(3)
+        for j in self.config.position_jumps:
+            if j.at_s <= t_s and (j.duration_s is None or t_s < j.at_s + j.duration_s):
+                out += np.asarray(j.offset_m, dtype=np.float64)
+        return out

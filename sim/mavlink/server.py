@@ -374,6 +374,7 @@ class SimServer:
         return float(np.asarray(self.world.height(x, y)))
 
     def _scheduled_events(self, now: float) -> None:
+        self.autopilot.estimate_offset_enu = self.schedule.position_offset(now)
         t1 = now + self.dt_s - 1e-9
         for _ in self.schedule.reboots_in(now, t1):
             self._reboot(now)
@@ -393,11 +394,12 @@ class SimServer:
 
     # ------------------------------------------------------------------- telemetry
     def snapshot(self) -> tm.Snapshot:
+        """The state as the autopilot estimates it (the truth, shifted by a position jump)."""
         ap = self.autopilot
         return tm.Snapshot(
             time_boot_ms=ap.time_boot_ms(self.t_s),
             time_ns=round((self.t_s - ap.boot_s) * 1e9),
-            position_enu=np.asarray(self.state.position_enu),
+            position_enu=np.asarray(self.state.position_enu) + ap.estimate_offset_enu,
             velocity_enu=self.velocity_enu,
             roll_rad=self.state.roll_rad,
             pitch_rad=self.state.pitch_rad,
@@ -488,7 +490,7 @@ class SimServer:
         if not self._link_up():
             self.stats.dropped_link_down += 1
             return
-        for packet in self.outgoing_faults.filter(data):
+        for packet in self.outgoing_faults.filter(data, self.t_s):
             self._sendto(packet)
 
     def _link_up(self) -> bool:
@@ -520,7 +522,7 @@ class SimServer:
             if not link_up:
                 self.stats.dropped_link_down += 1
                 continue
-            self._inbox.extend(self.incoming_faults.filter(msg))
+            self._inbox.extend(self.incoming_faults.filter(msg, self.t_s))
 
     def _drain_inbox(self, now: float) -> None:
         while self._inbox:
