@@ -72,8 +72,24 @@ def min_distance(samples_xy: FloatArray, obstacles_xy: FloatArray) -> FloatArray
     """Distance from each sample (n, 2) to the nearest obstacle point (k, 2); inf if none."""
     if len(obstacles_xy) == 0:
         return np.full(len(samples_xy), np.inf)
-    d2 = ((samples_xy[:, None, :] - obstacles_xy[None, :, :]) ** 2).sum(axis=2)
-    return np.asarray(np.sqrt(d2.min(axis=1)), dtype=np.float64)
+    # Per coordinate, not a sum over a length-2 axis: numpy reduces short axes slowly.
+    dx = samples_xy[:, 0, None] - obstacles_xy[None, :, 0]
+    dy = samples_xy[:, 1, None] - obstacles_xy[None, :, 1]
+    return np.asarray(np.sqrt((dx * dx + dy * dy).min(axis=1)), dtype=np.float64)
+
+
+def min_distance_within(
+    samples_xy: FloatArray, obstacles_xy: FloatArray, cutoff_m: float
+) -> FloatArray:
+    """`min_distance` where it is below cutoff_m (the same numbers); elsewhere some value
+    >= cutoff_m, possibly inf. Obstacles outside the samples' bounding box grown by
+    cutoff_m cannot come closer than that and are left out before the (n, k) distances."""
+    if len(samples_xy) == 0 or len(obstacles_xy) == 0:
+        return np.full(len(samples_xy), np.inf)
+    lo = samples_xy.min(axis=0) - cutoff_m
+    hi = samples_xy.max(axis=0) + cutoff_m
+    inside = np.all((obstacles_xy >= lo) & (obstacles_xy <= hi), axis=1)
+    return min_distance(samples_xy, obstacles_xy[inside])
 
 
 def sample_segments(segments: list[CubicBezier]) -> FloatArray:
@@ -82,9 +98,24 @@ def sample_segments(segments: list[CubicBezier]) -> FloatArray:
     return np.concatenate(parts) if parts else np.empty((0, 2))
 
 
+_CURVATURE_T = np.linspace(0.0, 1.0, 33)
+_FIRST = np.stack(  # Bernstein basis of B' at _CURVATURE_T, against the hodograph (33, 3)
+    [(1.0 - _CURVATURE_T) ** 2, 2.0 * _CURVATURE_T * (1.0 - _CURVATURE_T), _CURVATURE_T**2], 1
+)
+_SECOND = np.stack([1.0 - _CURVATURE_T, _CURVATURE_T], 1)  # B'' against its (33, 2) points
+
+
 def max_abs_curvature(segments: list[CubicBezier]) -> float:
-    ts = np.linspace(0.0, 1.0, 33)
-    return max(float(np.max(np.abs(seg.curvature(ts)))) for seg in segments)
+    """Largest |curvature| (1/m) at 33 evenly spaced t of each segment (`curvature`, for
+    all the segments at once)."""
+    control = np.stack([seg.control for seg in segments])  # (m, 4, 2)
+    d1 = _FIRST @ (3.0 * np.diff(control, axis=1))  # (m, 33, 2)
+    d2 = _SECOND @ (6.0 * np.diff(control, n=2, axis=1))
+    cross = d1[..., 0] * d2[..., 1] - d1[..., 1] * d2[..., 0]
+    speed = np.hypot(d1[..., 0], d1[..., 1])
+    with np.errstate(divide="ignore", invalid="ignore"):
+        kappa = np.where(speed > 1e-12, cross / speed**3, 0.0)
+    return float(np.abs(kappa).max())
 
 
 def free_intervals(
@@ -195,14 +226,14 @@ def plan_detour(route: Route, request: AvoidanceRequest, params: PlannerParams) 
                 candidates.append((cost, w, side))
     candidates.sort(key=lambda c: (c[0], c[1]))
 
+    tails: dict[float, list[CubicBezier]] = {}  # the route after each rejoin point tried
     for cost, w, side, transition in _with_transitions(candidates, l0, s0, s_a, d_m, params):
-        built = _build(route, poly, request, params, s0, transition, s_b, w, d_m)
+        built = _build(route, poly, request, params, s0, transition, s_b, w, d_m, tails)
         if built is None:
             continue
         detour_segments, rejoin_s, tail = built
         if max_abs_curvature(detour_segments) > 1.0 / params.min_turn_radius_m * 1.001:
             continue
-        samples = sample_segments(detour_segments)
         tail_len = 0.0
         tail_check: list[CubicBezier] = []
         for seg in tail:
@@ -210,9 +241,7 @@ def plan_detour(route: Route, request: AvoidanceRequest, params: PlannerParams) 
                 break
             tail_check.append(seg)
             tail_len += seg.length
-        if tail_check:
-            samples = np.concatenate([samples, sample_segments(tail_check)])
-        if float(min_distance(samples, obstacles).min()) < required:
+        if _comes_closer([*detour_segments, *tail_check], obstacles, required):
             continue
         extra = sum(seg.length for seg in detour_segments) - (rejoin_s - s0)
         return Detour(
@@ -224,6 +253,18 @@ def plan_detour(route: Route, request: AvoidanceRequest, params: PlannerParams) 
             cost=cost + max(extra, 0.0),
         )
     return None
+
+
+def _comes_closer(segments: list[CubicBezier], obstacles_xy: FloatArray, limit_m: float) -> bool:
+    """True if a sample of the segments (spaced as `sample_segments` spaces them) is closer
+    than limit_m to an obstacle point. Segment by segment, stopping at the first that is:
+    most rejected candidates fail early, and a segment's bounding box leaves out most
+    points."""
+    for seg in segments:
+        samples = sample_segments([seg])
+        if float(min_distance_within(samples, obstacles_xy, limit_m).min()) < limit_m:
+            return True
+    return False
 
 
 def _with_transitions(
@@ -263,9 +304,11 @@ def _build(
     s_b: float,
     w: float,
     d_m: float,
+    tails: dict[float, list[CubicBezier]],
 ) -> tuple[list[CubicBezier], float, list[CubicBezier]] | None:
     """The Bezier chain of one candidate: reach offset w at route position hold_start, hold
-    it to s_b + D_m, then rejoin the route; plus the route tail it rejoins."""
+    it to s_b + D_m, then rejoin the route; plus the route tail it rejoins. tails: the
+    route split at rejoin points already tried (candidates share them), filled in here."""
     hold_end = max(s_b + d_m, hold_start + params.min_turn_radius_m)
     ret = max(
         1.3 * math.sqrt(6.0 * abs(w) * params.min_turn_radius_m),
@@ -308,7 +351,9 @@ def _build(
         cur, cur_dir = point, direction
     if not segments:
         return None
-    _, tail = route.split_at(rejoin_s)
+    if rejoin_s not in tails:
+        tails[rejoin_s] = route.split_at(rejoin_s)[1]
+    tail = tails[rejoin_s]
     # The route tail starts exactly at the rejoin point; snap the last segment's end to it.
     if tail:
         last = segments[-1]

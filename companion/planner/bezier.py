@@ -5,6 +5,10 @@ x, y in metres. The parameter t (the paper's delta) runs over [0, 1]. Arc length
 8-point Gauss-Legendre quadrature on a table of sub-intervals (16, halved adaptively where
 the quadrature has not converged, as next to a cusp); its inverse uses Newton's method
 safeguarded by bisection, so a given arc length maps back to t to ~1e-12 m.
+
+Speed: the per-cycle calls (`point`, `velocity`, `unit_tangent`, `heading`, `speed`,
+`parameter_at`) are scalar pure-float code; the work done once per segment (the table,
+`uniform_samples`, `parameters_at`) is vectorised over all its nodes or samples at once.
 """
 
 from __future__ import annotations
@@ -12,14 +16,14 @@ from __future__ import annotations
 import bisect
 import math
 from dataclasses import dataclass, field
+from typing import NamedTuple
 
 import numpy as np
 
 from companion.planner.types import FloatArray
 
 _GL_NODES, _GL_WEIGHTS = np.polynomial.legendre.leggauss(8)
-_GL_X = tuple(float(x) for x in _GL_NODES)
-_GL_W = tuple(float(w) for w in _GL_WEIGHTS)
+_GL = tuple((float(x), float(w)) for x, w in zip(_GL_NODES, _GL_WEIGHTS, strict=True))
 _TABLE_INTERVALS = 16
 _TABLE_MAX_DEPTH = 16
 
@@ -30,17 +34,32 @@ def _bernstein(t: FloatArray) -> FloatArray:
     return np.stack([u * u * u, 3.0 * t * u * u, 3.0 * t * t * u, t * t * t], axis=-1)
 
 
+class UniformSamples(NamedTuple):
+    """Samples of a segment uniform in arc length: arc lengths from its start (n,), points
+    and unit tangents (n, 2), signed curvature (n,) in 1/m."""
+
+    s: FloatArray
+    points: FloatArray
+    tangents: FloatArray
+    curvature: FloatArray
+
+
 @dataclass(frozen=True)
 class CubicBezier:
     """B(t) = (1-t)^3 W1 + 3t(1-t)^2 P1 + 3t^2(1-t) P2 + t^3 W2, t in [0, 1] (eq. 5).
 
-    control: (4, 2) control points, metres. The arc-length table is built once on creation.
+    control: (4, 2) control points, metres. The arc-length table is built once, on first
+    use; `uniform_samples` are kept once computed.
     """
 
     control: FloatArray
-    _knots: tuple[float, ...] = field(init=False, repr=False, compare=False)
-    _lengths: tuple[float, ...] = field(init=False, repr=False, compare=False)
+    _table: tuple[tuple[float, ...], tuple[float, ...]] | None = field(
+        init=False, repr=False, compare=False
+    )
+    _c: tuple[float, ...] = field(init=False, repr=False, compare=False)
     _d: tuple[float, ...] = field(init=False, repr=False, compare=False)
+    _h: tuple[tuple[float, float], ...] = field(init=False, repr=False, compare=False)
+    _uniform: dict[float, UniformSamples] = field(init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
         c = np.array(self.control, dtype=np.float64)
@@ -48,15 +67,41 @@ class CubicBezier:
             raise ValueError(f"control points must be a finite (4, 2) array, got {c!r}")
         c.setflags(write=False)
         object.__setattr__(self, "control", c)
-        # Scalar copies of the hodograph's control points for the hot path (pure-float maths).
+        # Scalar copies of the control points and of the hodograph's control points
+        # (x0, y0, x1, y1, ...) for the per-cycle scalar fast paths (pure-float maths).
+        object.__setattr__(self, "_c", tuple(map(float, c.ravel())))
         d = 3.0 * np.diff(c, axis=0)
         object.__setattr__(self, "_d", tuple(map(float, d.ravel())))
+        # The hodograph in powers of t: B'(t) = h0 + h1 t + h2 t^2, for vectorised speeds.
+        h = ((d[0]), 2.0 * (d[1] - d[0]), d[0] - 2.0 * d[1] + d[2])
+        object.__setattr__(self, "_h", tuple((float(x), float(y)) for x, y in h))
+        object.__setattr__(self, "_uniform", {})
+        object.__setattr__(self, "_table", None)
+
+    def _arc_table(self) -> tuple[tuple[float, ...], tuple[float, ...]]:
+        """(knots, lengths): the arc-length table, built on first use (a candidate detour
+        segment that fails its curvature check never needs one)."""
+        if self._table is not None:
+            return self._table
+        # The table: each interval's quadrature whole and in halves, all intervals in one
+        # vectorised pass; the few that disagree (next to a cusp) are refined one by one.
+        n = _TABLE_INTERVALS
+        a = np.arange(n) / n
+        b = np.arange(1, n + 1) / n
+        m = 0.5 * (a + b)
+        quad = self._gauss_legendre_many(np.concatenate([a, a, m]), np.concatenate([b, m, b]))
+        whole, halves = quad[:n], quad[n : 2 * n] + quad[2 * n :]
         knots = [0.0]
         cum = [0.0]
-        for k in range(_TABLE_INTERVALS):
-            self._refine(k / _TABLE_INTERVALS, (k + 1) / _TABLE_INTERVALS, 0, knots, cum)
-        object.__setattr__(self, "_knots", tuple(knots))
-        object.__setattr__(self, "_lengths", tuple(cum))
+        for k in range(n):
+            if abs(whole[k] - halves[k]) > 1e-13 * (1.0 + whole[k]):
+                self._refine(float(a[k]), float(b[k]), 0, knots, cum)
+            else:
+                knots.append(float(b[k]))
+                cum.append(cum[-1] + float(halves[k]))
+        table = (tuple(knots), tuple(cum))
+        object.__setattr__(self, "_table", table)
+        return table
 
     def _refine(self, a: float, b: float, depth: int, knots: list[float], cum: list[float]) -> None:
         """Append table intervals covering [a, b], halving where the quadrature has not
@@ -74,8 +119,27 @@ class CubicBezier:
     # --- evaluation -------------------------------------------------------------------
     def evaluate(self, t: float | FloatArray) -> FloatArray:
         """Point(s) B(t); t scalar -> (2,), t array (n,) -> (n, 2)."""
+        if isinstance(t, float):
+            return np.array(self.point(t))
         tt = np.asarray(t, dtype=np.float64)
         return _bernstein(tt) @ self.control
+
+    def point(self, t: float) -> tuple[float, float]:
+        """B(t) at a scalar t as (x, y) floats (the pure-float fast path of `evaluate`)."""
+        c = self._c
+        u = 1.0 - t
+        b0, b1, b2, b3 = u * u * u, 3.0 * t * u * u, 3.0 * t * t * u, t * t * t
+        return (
+            b0 * c[0] + b1 * c[2] + b2 * c[4] + b3 * c[6],
+            b0 * c[1] + b1 * c[3] + b2 * c[5] + b3 * c[7],
+        )
+
+    def velocity(self, t: float) -> tuple[float, float]:
+        """B'(t) at a scalar t as (dx/dt, dy/dt) floats, metres per unit t."""
+        d = self._d
+        u = 1.0 - t
+        a, b, c = u * u, 2.0 * t * u, t * t
+        return a * d[0] + b * d[2] + c * d[4], a * d[1] + b * d[3] + c * d[5]
 
     def derivative(self, t: float | FloatArray, order: int = 1) -> FloatArray:
         """d^k B / dt^k for k = 1, 2, 3; same shapes as `evaluate`."""
@@ -114,19 +178,24 @@ class CubicBezier:
             k = cross / speed**3
         return np.where(speed > 1e-12, k, 0.0)
 
-    def tangent(self, t: float) -> FloatArray:
-        """Unit tangent at t (falls back to the chord direction at a cusp)."""
-        d = self.derivative(t, 1)
-        n = float(np.hypot(d[0], d[1]))
+    def unit_tangent(self, t: float) -> tuple[float, float]:
+        """Unit tangent at t as (x, y) floats (the chord direction at a cusp)."""
+        dx, dy = self.velocity(t)
+        n = math.hypot(dx, dy)
         if n < 1e-12:
-            d = self.control[3] - self.control[0]
-            n = float(np.hypot(d[0], d[1])) or 1.0
-        return np.asarray(d / n, dtype=np.float64)
+            c = self._c
+            dx, dy = c[6] - c[0], c[7] - c[1]
+            n = math.hypot(dx, dy) or 1.0
+        return dx / n, dy / n
+
+    def tangent(self, t: float) -> FloatArray:
+        """Unit tangent at t, (2,) (falls back to the chord direction at a cusp)."""
+        return np.array(self.unit_tangent(t))
 
     def heading(self, t: float) -> float:
         """Heading of the tangent, radians CCW from +x."""
-        d = self.tangent(t)
-        return math.atan2(float(d[1]), float(d[0]))
+        tx, ty = self.unit_tangent(t)
+        return math.atan2(ty, tx)
 
     # --- de Casteljau -------------------------------------------------------------------
     def split(self, t: float) -> tuple[CubicBezier, CubicBezier]:
@@ -144,23 +213,45 @@ class CubicBezier:
 
     # --- arc length ---------------------------------------------------------------------
     def _gauss_legendre(self, a: float, b: float) -> float:
-        """Integral of |B'| over [a, b], 8-point Gauss-Legendre."""
+        """Integral of |B'| over [a, b], 8-point Gauss-Legendre (`speed` inlined: this is
+        the innermost loop of the arc-length table and of its inverse)."""
+        d0, d1, d2, d3, d4, d5 = self._d
         half, mid = 0.5 * (b - a), 0.5 * (b + a)
         total = 0.0
-        for x, w in zip(_GL_X, _GL_W, strict=True):
-            total += w * self.speed(mid + half * x)
+        for x, w in _GL:
+            t = mid + half * x
+            u = 1.0 - t
+            p, q, r = u * u, 2.0 * t * u, t * t
+            total += w * math.hypot(p * d0 + q * d2 + r * d4, p * d1 + q * d3 + r * d5)
         return half * total
+
+    def _gauss_legendre_many(self, a: FloatArray, b: FloatArray) -> FloatArray:
+        """`_gauss_legendre` over the intervals [a_i, b_i] at once, (n,)."""
+        half, mid = 0.5 * (b - a), 0.5 * (b + a)
+        speed = self.speeds(mid[:, None] + half[:, None] * _GL_NODES)
+        out: FloatArray = half * (speed @ _GL_WEIGHTS)
+        return out
+
+    def speeds(self, t: FloatArray) -> FloatArray:
+        """|B'(t)| for an array of t (any shape), metres per unit t. The hodograph in
+        powers of t, B'(t) = h0 + t (h1 + t h2), evaluated by Horner's rule."""
+        (x0, y0), (x1, y1), (x2, y2) = self._h
+        dx = (x2 * t + x1) * t + x0
+        dy = (y2 * t + y1) * t + y0
+        out: FloatArray = np.sqrt(dx * dx + dy * dy)
+        return out
 
     @property
     def length(self) -> float:
         """Total arc length, metres."""
-        return self._lengths[-1]
+        return self._arc_table()[1][-1]
 
     def arc_length(self, t: float) -> float:
         """Arc length from t = 0 to t, metres."""
         t = min(max(t, 0.0), 1.0)
-        k = min(bisect.bisect_right(self._knots, t) - 1, len(self._knots) - 2)
-        return self._lengths[k] + self._gauss_legendre(self._knots[k], t)
+        knots, lengths = self._arc_table()
+        k = min(bisect.bisect_right(knots, t) - 1, len(knots) - 2)
+        return lengths[k] + self._gauss_legendre(knots[k], t)
 
     def parameter_at(self, s: float, tol_m: float = 1e-12) -> float:
         """The t in [0, 1] at which the arc length from 0 equals s (clamped to the segment).
@@ -168,14 +259,13 @@ class CubicBezier:
         Newton's method on L(t) - s with L'(t) = |B'(t)|, kept inside the table interval
         that brackets s; a step that leaves the bracket is replaced by bisection.
         """
-        lengths = self._lengths
+        knots, lengths = self._arc_table()
         if s <= 0.0:
             return 0.0
         if s >= lengths[-1]:
             return 1.0
         k = min(bisect.bisect_left(lengths, s) - 1, len(lengths) - 2)
         k = max(k, 0)
-        knots = self._knots
         lo, hi = knots[k], knots[k + 1]
         span = lengths[k + 1] - lengths[k]
         t = lo + (hi - lo) * ((s - lengths[k]) / span if span > 0.0 else 0.5)
@@ -195,6 +285,54 @@ class CubicBezier:
                 return t_new
             t = t_new
         return t
+
+    def parameters_at(self, s: FloatArray, tol_m: float = 1e-12) -> FloatArray:
+        """`parameter_at` for an array of arc lengths (n,): the same safeguarded Newton
+        iteration, on all of them at once; each one stops changing when it has converged."""
+        s = np.asarray(s, dtype=np.float64)
+        knots, lengths = map(np.array, self._arc_table())
+        k = np.clip(np.searchsorted(lengths, s) - 1, 0, len(lengths) - 2)
+        base, start = lengths[k], knots[k]
+        lo, hi = start, knots[k + 1]
+        span = lengths[k + 1] - base
+        frac = np.divide(s - base, span, out=np.full(len(s), 0.5), where=span > 0.0)
+        t = lo + (hi - lo) * frac
+        done = (s <= 0.0) | (s >= lengths[-1])  # answered below, outside (0, length)
+        for _ in range(50):
+            f = base + self._gauss_legendre_many(start, t) - s
+            active = ~done & (np.abs(f) > tol_m)
+            if not active.any():
+                break
+            done |= ~active
+            over = f > 0.0
+            hi = np.where(over, t, hi)
+            lo = np.where(over, lo, t)
+            # Newton; where |B'| vanishes the step is 0, which leaves the bracket: bisect.
+            v = self.speeds(t)
+            t_new = t - f / np.where(v > 1e-12, v, np.inf)
+            t_new = np.where((lo < t_new) & (t_new < hi), t_new, 0.5 * (lo + hi))
+            t = np.where(active, t_new, t)
+            done |= active & (hi - lo < 1e-15)
+        out: FloatArray = np.where(s <= 0.0, 0.0, np.where(s >= lengths[-1], 1.0, t))
+        return out
+
+    def uniform_samples(self, spacing_m: float) -> UniformSamples:
+        """Samples uniform in arc length at about spacing_m, both ends included (cached)."""
+        cached = self._uniform.get(spacing_m)
+        if cached is None:
+            n = max(2, math.ceil(self.length / spacing_m) + 1)
+            lengths = np.linspace(0.0, self.length, n)
+            ts = self.parameters_at(lengths)
+            d = self.derivative(ts, 1)
+            norm = np.hypot(d[:, 0], d[:, 1])
+            norm[norm < 1e-12] = 1.0
+            cached = UniformSamples(
+                lengths, self.evaluate(ts), d / norm[:, None], self.curvature(ts)
+            )
+            for a in cached:
+                a.setflags(write=False)
+            self._uniform[spacing_m] = cached
+        return cached
 
     def sample(self, n: int) -> FloatArray:
         """n points at uniform t, including both ends, (n, 2)."""

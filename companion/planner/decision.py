@@ -33,4 +33,4 @@ def thresholds(groups: tuple[Group, ...], params: PlannerParams) -> FloatArray:
 
 def decide(phi_star: FloatArray, threshold: FloatArray) -> Decision:
     """Eq. (7) decision: horizontal if any phi_i* exceeds its threshold, else vertical."""
-    return Decision.HORIZONTAL if bool(np.any(phi_star > threshold)) else Decision.VERTICAL
+    return Decision.HORIZONTAL if (phi_star > threshold).any() else Decision.VERTICAL

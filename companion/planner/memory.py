@@ -4,6 +4,11 @@ Points are binned on a horizontal grid (one point per `cell_m` square, the newes
 a wall seen for a minute costs as much as a wall seen once. Points farther than `radius_m`
 from the vehicle are forgotten, and the oldest go first when `max_points` is reached.
 Deterministic: "age" is the planner's cycle count, never a clock.
+
+Storage: the points live in rows ("slots") of one preallocated array; a dict maps each grid
+cell to its slot and keeps the cells oldest first. Adding or replacing a point writes one
+row, and the (k, 2) array of points is gathered from the slots in one step when asked for.
+`version` changes whenever the stored points do, so callers can cache what they derive.
 """
 
 from __future__ import annotations
@@ -14,6 +19,8 @@ import numpy as np
 
 from companion.planner.types import FloatArray
 
+_INITIAL_SLOTS = 64
+
 
 class ObstacleMemory:
     def __init__(self, cell_m: float, radius_m: float, max_points: int) -> None:
@@ -22,30 +29,50 @@ class ObstacleMemory:
         self.cell_m = cell_m
         self.radius_m = radius_m
         self.max_points = max_points
-        self._cells: dict[tuple[int, int], tuple[float, float, float, int]] = {}
+        self.version = 0
+        self._cells: dict[tuple[int, int], int] = {}  # grid cell -> slot, oldest first
+        self._xyz = np.empty((_INITIAL_SLOTS, 3))
+        self._cycle = np.zeros(_INITIAL_SLOTS, dtype=np.int64)
+        self._free: list[int] = list(range(_INITIAL_SLOTS - 1, -1, -1))
         self._xy: FloatArray | None = None
 
     def __len__(self) -> int:
         return len(self._cells)
 
+    def _slot(self) -> int:
+        """A free row of the point array, growing it when full."""
+        if not self._free:
+            old = len(self._xyz)
+            self._xyz = np.concatenate([self._xyz, np.empty((old, 3))])
+            self._cycle = np.concatenate([self._cycle, np.zeros(old, dtype=np.int64)])
+            self._free = list(range(2 * old - 1, old - 1, -1))
+        return self._free.pop()
+
     def add(self, points_enu: FloatArray, cycle: int) -> int:
         """Store points (k, 3); returns how many cells were new."""
         new = 0
         inv = 1.0 / self.cell_m
-        for x, y, z in np.asarray(points_enu, dtype=np.float64).reshape(-1, 3):
+        cells = self._cells
+        for x, y, z in np.asarray(points_enu, dtype=np.float64).reshape(-1, 3).tolist():
             if not (math.isfinite(x) and math.isfinite(y) and math.isfinite(z)):
                 continue
             key = (math.floor(x * inv), math.floor(y * inv))
-            if key not in self._cells:
+            slot = cells.pop(key, None)  # re-inserted below, so dict order stays oldest-first
+            if slot is None:
                 new += 1
-            else:
-                del self._cells[key]  # re-insert so dict order stays oldest-first
-            self._cells[key] = (float(x), float(y), float(z), cycle)
-        while len(self._cells) > self.max_points:
-            del self._cells[next(iter(self._cells))]
+                slot = self._slot()
+            cells[key] = slot
+            self._xyz[slot] = (x, y, z)
+            self._cycle[slot] = cycle
+        while len(cells) > self.max_points:
+            self._free.append(cells.pop(next(iter(cells))))
         if len(points_enu):
-            self._xy = None
+            self._changed()
         return new
+
+    def _changed(self) -> None:
+        self._xy = None
+        self.version += 1
 
     def forget_far(self, position_xy: FloatArray) -> int:
         """Drop points farther than radius_m from position_xy; returns how many."""
@@ -56,18 +83,16 @@ class ObstacleMemory:
         if not far.any():
             return 0
         keys = list(self._cells)
-        for i in np.flatnonzero(far):
-            del self._cells[keys[i]]
-        self._xy = None
+        for i in np.flatnonzero(far).tolist():
+            self._free.append(self._cells.pop(keys[i]))
+        self._changed()
         return int(far.sum())
 
     def points_xy(self) -> FloatArray:
         """Remembered points, (k, 2) x, y metres, oldest first."""
         if self._xy is None:
-            if self._cells:
-                self._xy = np.array([(v[0], v[1]) for v in self._cells.values()])
-            else:
-                self._xy = np.empty((0, 2))
+            slots = np.fromiter(self._cells.values(), dtype=np.intp, count=len(self._cells))
+            self._xy = self._xyz[slots, :2]
         return self._xy
 
     def near(self, position_xy: FloatArray, radius_m: float) -> FloatArray:

@@ -13,6 +13,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
+from numpy.typing import NDArray
 
 from companion.planner.bezier import CubicBezier
 from companion.planner.types import FloatArray
@@ -92,19 +93,14 @@ class Path:
             return self._polyline
         ss, pts, tans, curv = [], [], [], []
         for k, seg in enumerate(self.segments):
-            n = max(2, math.ceil(seg.length / spacing_m) + 1)
-            # Uniform in arc length: invert the table at evenly spaced lengths.
-            lengths = np.linspace(0.0, seg.length, n)
-            ts = np.array([seg.parameter_at(x) for x in lengths])
-            if k > 0:
-                lengths, ts = lengths[1:], ts[1:]
-            ss.append(self._starts[k] + lengths)
-            pts.append(seg.evaluate(ts))
-            d = seg.derivative(ts, 1)
-            norm = np.hypot(d[:, 0], d[:, 1])
-            norm[norm < 1e-12] = 1.0
-            tans.append(d / norm[:, None])
-            curv.append(seg.curvature(ts))
+            # Uniform in arc length (the exact inverse of the table); a segment keeps its
+            # samples, so a corrected path re-uses those of the route segments it joins.
+            lengths, points, tangents, curvature = seg.uniform_samples(spacing_m)
+            first = 1 if k > 0 else 0
+            ss.append(self._starts[k] + lengths[first:])
+            pts.append(points[first:])
+            tans.append(tangents[first:])
+            curv.append(curvature[first:])
         tangents = np.concatenate(tans)
         poly = Polyline(
             s=np.concatenate(ss),
@@ -140,10 +136,27 @@ def project(poly: Polyline, points_xy: FloatArray) -> tuple[FloatArray, FloatArr
     q = np.asarray(points_xy, dtype=np.float64).reshape(-1, 2)
     if len(q) == 0:
         return np.empty(0), np.empty(0)
-    d2 = ((q[:, None, :] - poly.points[None, :, :]) ** 2).sum(axis=2)
-    j = np.argmin(d2, axis=1)
+    near = _candidates(poly.points, q)
+    dx = q[:, 0, None] - poly.points[None, near, 0]
+    dy = q[:, 1, None] - poly.points[None, near, 1]
+    j = near[np.argmin(dx * dx + dy * dy, axis=1)]
     rel = q - poly.points[j]
     along = np.einsum("ij,ij->i", rel, poly.tangents[j])
     lateral = np.einsum("ij,ij->i", rel, poly.normals[j])
     s = np.clip(poly.s[j] + along, poly.s[0], poly.s[-1])
     return s, lateral
+
+
+def _candidates(samples_xy: FloatArray, points_xy: FloatArray) -> NDArray[np.intp]:
+    """Indices (ascending) of the samples that can be the nearest to one of the points.
+
+    Every 8th sample bounds each point's distance to the polyline from above, so the nearest
+    sample lies in the points' bounding box grown by the largest of those bounds; on a long
+    path that leaves out most samples before the (k, n) distances are formed."""
+    coarse = samples_xy[::8]
+    dx = points_xy[:, 0, None] - coarse[None, :, 0]
+    dy = points_xy[:, 1, None] - coarse[None, :, 1]
+    reach = math.sqrt(float((dx * dx + dy * dy).min(axis=1).max())) * (1.0 + 1e-9) + 1e-9
+    lo = points_xy.min(axis=0) - reach
+    hi = points_xy.max(axis=0) + reach
+    return np.flatnonzero(np.all((samples_xy >= lo) & (samples_xy <= hi), axis=1))

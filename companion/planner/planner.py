@@ -12,16 +12,29 @@ Every cycle:
    the first point that would come closer than D_min, and by the distance to the end of the
    path, and ramps at accel_max; X_d advances along the path at that 3-D speed, eq. (5).
 Deterministic: same inputs, same outputs. No clocks or I/O; dt_s comes from the caller.
+
+Cost per cycle (a Raspberry Pi runs this at 20-50 Hz): the flown path's dense samples are
+built once per path, the look-ahead (its samples, their clearance from the remembered
+points) once per cycle and shared by the conflict check and the speed limit; the rest is
+scalar arithmetic and a few small array operations on the sensor readings.
 """
 
 from __future__ import annotations
 
+import bisect
 import math
 from collections import deque
+from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 
-from companion.planner.avoidance import AvoidanceRequest, Detour, min_distance, plan_detour
+from companion.planner.avoidance import (
+    AvoidanceRequest,
+    Detour,
+    min_distance_within,
+    plan_detour,
+)
 from companion.planner.decision import decide, steepness, thresholds
 from companion.planner.frames import wrap_pi
 from companion.planner.memory import ObstacleMemory
@@ -50,6 +63,60 @@ _YAW_RATE_AT_REST_RAD_S = 0.8
 _YAW_ALIGNED_RAD = 0.1
 _STOPPED_MPS = 1e-3
 _GROUND_HOLD_RANGE = 4.0
+
+
+@dataclass(frozen=True, slots=True)
+class _PathSamples:
+    """The flown path's dense samples as the per-cycle checks read them, built once per
+    path: arc lengths s (n,) (also as a list, for bisect) and points (n, 2); v_curve_sq
+    (n,), the squared speed at which each sample's curvature reaches lat_accel_max; and
+    the "curve samples", where that speed is below about v_d (the only ones that can lower
+    the reference speed; on straight stretches there are none): their indices (sorted),
+    arc lengths and v_curve_sq."""
+
+    s: FloatArray
+    s_list: list[float]
+    points: FloatArray
+    curves: list[int]
+    curve_s: FloatArray
+    curve_v_sq: FloatArray
+
+    @classmethod
+    def of(cls, path: Path, lat_accel_max_mps2: float, v_d_mps: float) -> _PathSamples:
+        poly = path.polyline()
+        kappa = np.abs(poly.curvature)
+        with np.errstate(divide="ignore"):
+            v_curve = np.sqrt(lat_accel_max_mps2 / np.maximum(kappa, 1e-9))
+        # A sample whose v_curve >= v_d cannot limit the speed (which never exceeds v_d);
+        # 1 % over, so that the rounding of v_curve**2 cannot matter.
+        curves = np.flatnonzero(v_curve < 1.01 * v_d_mps)
+        v_sq = v_curve**2
+        return cls(
+            poly.s, poly.s.tolist(), poly.points, curves.tolist(), poly.s[curves], v_sq[curves]
+        )
+
+    def window(self, s_from: float, length_m: float) -> slice:
+        """The samples with s_from <= s <= s_from + length_m (s is sorted)."""
+        lo = bisect.bisect_left(self.s_list, s_from)
+        return slice(lo, bisect.bisect_right(self.s_list, s_from + length_m))
+
+    def curves_in(self, window: slice) -> slice:
+        """The curve samples inside a window of samples, as a slice of curve_s/curve_v_sq."""
+        lo = bisect.bisect_left(self.curves, window.start)
+        return slice(lo, bisect.bisect_left(self.curves, window.stop))
+
+
+class _LookAhead(NamedTuple):
+    """The path from X_d to lookahead this cycle: the samples' arc lengths and points, the
+    curve samples among them (their arc lengths and v_curve_sq, see `_PathSamples`), and
+    the samples' clearance: the distance to the nearest remembered point, exact below the
+    planner's clearance cutoff, larger or inf above; None when the memory is empty."""
+
+    s: FloatArray
+    points: FloatArray
+    curve_s: FloatArray
+    curve_v_sq: FloatArray
+    clearance: FloatArray | None
 
 
 class Planner:
@@ -81,10 +148,24 @@ class Planner:
         self.route = route
         self._obstacle_groups = sensors.obstacle_groups
         self._thresholds = thresholds(self._obstacle_groups, params)
+        # The rows of `_ground_points` when every surface sensor reads (the usual case).
+        all_surface = sensors.surface_index
+        self._ground_rows_all = np.array(
+            [
+                all_surface.get(SURFACE_FOR_GROUP[g], all_surface[Group.SURFACE_FORWARD])
+                for g in self._obstacle_groups
+            ],
+            dtype=np.intp,
+        )
         self._memory = ObstacleMemory(
             params.memory_cell_m, params.memory_radius_m, params.memory_max_points
         )
         self._path: Path = route
+        self._samples: _PathSamples | None = None
+        self._look: _LookAhead | None = None
+        # Clearances only matter below the re-plan trigger (D_min + margin / 2) and, for the
+        # stopping limit, 0.05 m beyond it; anything farther need not be measured exactly.
+        self._clearance_cutoff_m = params.d_min_m + 0.5 * params.clearance_margin_m + 0.1
         self._segment, self._t = 0, 0.0
         self._s = 0.0
         self._z = float(start[2])
@@ -170,16 +251,18 @@ class Planner:
         # Eqs (6)-(7): steepness of each obstacle reading against its group's ground point.
         obs = self.sensors.obstacle_index
         detected = valid[obs]
+        obstacle_points = points[obs]
         ground = self._ground_points(points, surface, state)
-        phi_star = steepness(points[obs], ground, detected)
+        phi_star = steepness(obstacle_points, ground, detected)
         decision = decide(phi_star, self._thresholds)
         steep = detected & (phi_star > self._thresholds)
         if steep.any():
-            self._memory.add(points[obs][steep], self._cycle)
+            self._memory.add(obstacle_points[steep], self._cycle)
         self._memory.forget_far(state.position_enu[:2])
         min_range = float(ranges[obs][detected].min()) if detected.any() else 0.0
 
         # Horizontal correction when the path ahead conflicts with remembered points.
+        self._look = None  # the memory has changed: measure the look-ahead afresh
         replanned = self._update_path(state, ranges, valid, events)
         if self._blocked:
             decision = Decision.BLOCKED
@@ -209,8 +292,8 @@ class Planner:
             )
             self._segment, self._t, self._z = seg, t, z
             self._s = self._path.arc_length_at(seg, t)
-        xy = self._path.segments[self._segment].evaluate(self._t)
-        x_d = np.array([xy[0], xy[1], self._z])
+        x, y = self._path.segments[self._segment].point(self._t)
+        x_d = np.array([x, y, self._z])
 
         heading = self._path_heading()
         if self._v > _STOPPED_MPS:
@@ -218,11 +301,15 @@ class Planner:
         else:
             turn = _YAW_RATE_AT_REST_RAD_S * dt_s
             self._yaw = wrap_pi(self._yaw + min(max(wrap_pi(heading - self._yaw), -turn), turn))
-        tangent = np.array([math.cos(heading), math.sin(heading)])
-        velocity = self._v * np.array(
-            [tangent[0] * math.cos(phi_d), tangent[1] * math.cos(phi_d), math.sin(phi_d)]
+        cos_phi = math.cos(phi_d)
+        velocity = np.array(
+            [
+                self._v * (math.cos(heading) * cos_phi),
+                self._v * (math.sin(heading) * cos_phi),
+                self._v * math.sin(phi_d),
+            ]
         )
-        self._record_track(x_d)
+        self._record_track(x, y)
         self._xd_prev = x_d
 
         if self._mode is not PathMode.ROUTE and self._s >= self._detour_end_s:
@@ -282,15 +369,18 @@ class Planner:
     ) -> FloatArray:
         """X_hj paired with each obstacle sensor (eq. 6); when the group's surface reading is
         missing, the forward one, else the point H_d below the vehicle."""
-        fallback_idx = surface.get(Group.SURFACE_FORWARD)
-        if fallback_idx is not None:
-            fallback = points[fallback_idx]
-        else:
-            fallback = state.position_enu - np.array([0.0, 0.0, self._h_d])
-        out = np.empty((len(self._obstacle_groups), 3))
-        for k, group in enumerate(self._obstacle_groups):
-            idx = surface.get(SURFACE_FOR_GROUP[group])
-            out[k] = points[idx] if idx is not None else fallback
+        if len(surface) == len(self.sensors.surface_index):
+            every: FloatArray = points[self._ground_rows_all]
+            return every
+        rows = [surface.get(SURFACE_FOR_GROUP[group], -1) for group in self._obstacle_groups]
+        out: FloatArray = points[rows]
+        missing = [k for k, idx in enumerate(rows) if idx < 0]
+        if missing:
+            fallback_idx = surface.get(Group.SURFACE_FORWARD)
+            if fallback_idx is not None:
+                out[missing] = points[fallback_idx]
+            else:
+                out[missing] = state.position_enu - np.array([0.0, 0.0, self._h_d])
         return out
 
     def _path_heading(self) -> float:
@@ -301,21 +391,44 @@ class Planner:
 
     def _set_path(self, path: Path, mode: PathMode, side: Side) -> None:
         self._path = path
+        self._samples = None
+        self._look = None
         self._s = 0.0
         self._segment, self._t = 0, 0.0
         self._mode, self._side = mode, side
         self._stops = []
 
-    def _record_track(self, x_d: FloatArray) -> None:
+    def _record_track(self, x: float, y: float) -> None:
         last = self._track[-1]
-        if math.hypot(x_d[0] - last[0], x_d[1] - last[1]) >= _TRACK_SPACING_M:
-            self._track.append((float(x_d[0]), float(x_d[1])))
+        if math.hypot(x - last[0], y - last[1]) >= _TRACK_SPACING_M:
+            self._track.append((x, y))
 
-    def _ahead(self) -> tuple[FloatArray, FloatArray]:
-        """Dense samples of the path from X_d to lookahead: arc lengths and points."""
-        poly = self._path.polyline()
-        sel = (poly.s >= self._s) & (poly.s <= self._s + self.params.lookahead_m)
-        return poly.s[sel], poly.points[sel]
+    def _look_ahead(self) -> _LookAhead:
+        """The path from X_d to lookahead with its clearances: measured once per cycle (it
+        serves the conflict check and the stopping limit), again only if the path changes."""
+        if self._look is None:
+            params = self.params
+            if self._samples is None:
+                self._samples = _PathSamples.of(
+                    self._path, params.lat_accel_max_mps2, params.v_d_mps
+                )
+            samples = self._samples
+            ahead = samples.window(self._s, params.lookahead_m)
+            points = samples.points[ahead]
+            curves = samples.curves_in(ahead)
+            clearance = None
+            if len(self._memory):
+                clearance = min_distance_within(
+                    points, self._memory.points_xy(), self._clearance_cutoff_m
+                )
+            self._look = _LookAhead(
+                samples.s[ahead],
+                points,
+                samples.curve_s[curves],
+                samples.curve_v_sq[curves],
+                clearance,
+            )
+        return self._look
 
     def _update_path(
         self, state: VehicleState, ranges: FloatArray, valid: BoolArray, events: list[str]
@@ -323,23 +436,27 @@ class Planner:
         """Re-plan if the path ahead conflicts with the memory. Returns True if re-planned."""
         params = self.params
         here = self._xd_prev[:2]
-        nearby = self._memory.near(here, params.lookahead_m + 2.0 * params.d_min_m + 10.0)
-        if len(nearby) == 0:
+        radius = params.lookahead_m + 2.0 * params.d_min_m + 10.0
+        if len(self._memory) == 0:
             self._blocked = False
             return False
-        _s_ahead, pts_ahead = self._ahead()
-        if len(pts_ahead) == 0:
+        look = self._look_ahead()
+        if len(look.s) == 0 or look.clearance is None:  # (None only with no memory)
+            if len(self._memory.near(here, radius)) == 0:
+                self._blocked = False
             return False
-        dist = min_distance(pts_ahead, nearby)
+        # The samples are within lookahead of here, so every remembered point closer to one
+        # than the trigger distance is within `radius` of here: no need to filter first.
         trigger = params.d_min_m + 0.5 * params.clearance_margin_m
-        conflict_samples = dist < trigger
+        conflict_samples = look.clearance < trigger
         if not conflict_samples.any():
             self._blocked = False
             return False
         if self._mode is PathMode.RETREAT and not self._blocked:
             return False  # backing out along the covered track: it is known to be free
+        nearby = self._memory.near(here, radius)
         # Points that the conflicting part of the path comes too close to.
-        bad = pts_ahead[conflict_samples]
+        bad = look.points[conflict_samples]
         d_to_bad = np.sqrt(((nearby[:, None, :] - bad[None, :, :]) ** 2).sum(axis=2)).min(axis=1)
         conflict_xy = nearby[d_to_bad < trigger]
         free_left, free_right = self._free_range(ranges, valid)
@@ -446,19 +563,15 @@ class Planner:
             if stop > s_here + 1e-9:
                 v = min(v, math.sqrt(2.0 * a * (stop - s_here)))
                 break
-        s_ahead, pts_ahead = self._ahead()
-        if len(s_ahead) == 0:
+        look = self._look_ahead()
+        if len(look.s) == 0:
             return v
-        poly = self._path.polyline()
-        sel = (poly.s >= s_here) & (poly.s <= s_here + params.lookahead_m)
-        kappa = np.abs(poly.curvature[sel])
-        with np.errstate(divide="ignore"):
-            v_curve = np.sqrt(params.lat_accel_max_mps2 / np.maximum(kappa, 1e-9))
-        reach = np.sqrt(v_curve**2 + 2.0 * a * (s_ahead - s_here))
-        v = min(v, float(reach.min()))
-        nearby = self._memory.near(self._xd_prev[:2], params.lookahead_m + 10.0)
-        if len(nearby):
-            dist = min_distance(pts_ahead, nearby)
+        if len(look.curve_s):
+            # The speed from which the curve limit at each sample is reached at accel_max.
+            reach_sq = look.curve_v_sq + 2.0 * a * (look.curve_s - s_here)
+            v = min(v, math.sqrt(float(reach_sq.min())))
+        if look.clearance is not None:
+            dist = look.clearance
             # Stop before the first place closer than the trigger distance. An accepted
             # correction may start inside that band (new points appeared) while leading out
             # of it; then only places closer than here count, and never closer than D_min.
@@ -467,6 +580,6 @@ class Planner:
                 limit = max(min(limit, float(dist[0]) - 0.05), params.d_min_m)
             too_close = np.flatnonzero(dist < limit)
             if len(too_close):
-                free = float(s_ahead[too_close[0]] - s_here)
+                free = float(look.s[too_close[0]] - s_here)
                 v = min(v, math.sqrt(2.0 * a * max(free - 0.05, 0.0)))
         return max(v, 0.0)

@@ -233,6 +233,8 @@ class SensorTable:
         self.specs: tuple[SensorSpec, ...] = tuple(specs)
         self.boresights_flu = np.array([s.boresight_flu for s in specs])
         self.min_range_m = np.array([s.min_range_m for s in specs])
+        # "> 0 and >= min" as one comparison: >= the larger of min and the smallest float > 0.
+        self._detect_from_m = np.maximum(self.min_range_m, np.nextafter(0.0, 1.0))
         self.max_range_m = np.array([s.max_range_m for s in specs])
         self.obstacle_index = np.array(
             [i for i, s in enumerate(specs) if s.role is Role.OBSTACLE], dtype=np.intp
@@ -254,10 +256,11 @@ class SensorTable:
         return len(self.specs)
 
     def valid(self, ranges_m: FloatArray) -> BoolArray:
-        """Boolean mask of readings that detect something: finite, > 0, >= min and < max."""
+        """Boolean mask of readings that detect something: finite, > 0, >= min and < max.
+        (NaN fails every comparison and inf the one with the finite max: no isfinite needed.)"""
         r = np.asarray(ranges_m, dtype=np.float64)
-        with np.errstate(invalid="ignore"):
-            return np.isfinite(r) & (r > 0.0) & (r >= self.min_range_m) & (r < self.max_range_m)
+        detects: BoolArray = (r >= self._detect_from_m) & (r < self.max_range_m)
+        return detects
 
 
 def range_points_world(

@@ -11,7 +11,6 @@ import math
 import numpy as np
 
 from companion.planner.path import Path
-from companion.planner.rotations import r_psi
 from companion.planner.types import FloatArray
 
 
@@ -21,23 +20,34 @@ def aim_point(x_h1: FloatArray, x_h2: FloatArray, yaw_rad: float, h_d_m: float) 
     X_h1/X_h2: ground points of the forward and backward surface sensors. R_psi turns the
     fore-aft ground direction up by pi/2; the result is normalised after rotating because
     roll or side-slip take (X_h1 - X_h2) out of the heading's vertical plane (PAPER_NOTES).
+    Scalar arithmetic (a per-cycle path): R_psi is `rotations.r_psi` written out.
     """
-    g = np.asarray(x_h1, dtype=np.float64) - np.asarray(x_h2, dtype=np.float64)
-    g_norm = float(np.linalg.norm(g))
+    x1, y1, z1 = np.asarray(x_h1, dtype=np.float64).tolist()
+    x2, y2, z2 = np.asarray(x_h2, dtype=np.float64).tolist()
+    gx, gy, gz = x1 - x2, y1 - y2, z1 - z2
+    g_norm = math.sqrt(gx * gx + gy * gy + gz * gz)
     if g_norm < 1e-9:
         raise ValueError("forward and backward ground points coincide")
-    up = r_psi(yaw_rad) @ (g / g_norm)
-    up_norm = float(np.linalg.norm(up))
+    gx, gy, gz = gx / g_norm, gy / g_norm, gz / g_norm
+    c, s = math.cos(yaw_rad), math.sin(yaw_rad)
+    ux = s * s * gx - c * s * gy - c * gz
+    uy = -c * s * gx + c * c * gy - s * gz
+    uz = c * gx + s * gy
+    up_norm = math.sqrt(ux * ux + uy * uy + uz * uz)
     if up_norm < 1e-9:
         raise ValueError("ground direction is perpendicular to the heading")
-    return np.asarray(x_h1, dtype=np.float64) + h_d_m * up / up_norm
+    return np.array(
+        [x1 + h_d_m * ux / up_norm, y1 + h_d_m * uy / up_norm, z1 + h_d_m * uz / up_norm]
+    )
 
 
 def desired_pitch(x_z: FloatArray, x_d_prev: FloatArray, phi_max_rad: float) -> float:
     """Eq. (4): phi_d = arctan((z_z - z_d(k-1)) / |[x_z, y_z] - [x_d(k-1), y_d(k-1)]|),
     clamped to [-phi_max, +phi_max] (requirement 5). Radians."""
-    dz = float(x_z[2] - x_d_prev[2])
-    dh = math.hypot(float(x_z[0] - x_d_prev[0]), float(x_z[1] - x_d_prev[1]))
+    xz, yz, zz = np.asarray(x_z, dtype=np.float64).tolist()
+    xd, yd, zd = np.asarray(x_d_prev, dtype=np.float64).tolist()
+    dz = zz - zd
+    dh = math.hypot(xz - xd, yz - yd)
     phi = math.atan2(dz, dh)
     return min(max(phi, -phi_max_rad), phi_max_rad)
 
@@ -68,7 +78,7 @@ def advance_paper(
     """
     tan_phi = math.tan(phi_d_rad)
     seg = path.segments[segment]
-    prev = seg.evaluate(t)
+    prev = seg.point(t)
     travelled = 0.0
     horizontal = 0.0
     iterations = 0
@@ -82,8 +92,8 @@ def advance_paper(
                 t -= 1.0
             else:
                 t = 1.0
-        point = seg.evaluate(t)
-        sx = math.hypot(float(point[0] - prev[0]), float(point[1] - prev[1]))
+        point = seg.point(t)
+        sx = math.hypot(point[0] - prev[0], point[1] - prev[1])
         sz = tan_phi * sx
         travelled += math.hypot(sx, sz)
         horizontal += sx
