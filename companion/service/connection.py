@@ -19,6 +19,7 @@ from dataclasses import dataclass
 
 from companion.service.codec import MavCodec, MAVLinkMessage
 from companion.service.link import Link, Peer
+from companion.service.telemetry import LOG_AT_COUNTS
 
 log = logging.getLogger(__name__)
 
@@ -87,10 +88,10 @@ class Connection:
                 self.counters["before_lock"] += 1
                 return
         if src_sys != self.target_system:
-            self.counters["other_system"] += 1
+            self._ignored("other_system", msg)
             return
         if src_comp != self.target_component:
-            self.counters["other_component"] += 1
+            self._ignored("other_component", msg)
             return
         if peer is not None and peer != self._peer:
             self._peer = peer
@@ -104,6 +105,21 @@ class Connection:
                     self._waiters.remove(w)
         if self.on_message is not None:
             self.on_message(msg, t_rx)
+
+    def _ignored(self, name: str, msg: MAVLinkMessage) -> None:
+        n = self.counters[name] + 1
+        self.counters[name] = n
+        if n in LOG_AT_COUNTS:
+            log.warning(
+                "conn.%s: %d so far (ignored %s from %d/%d; the autopilot is %s/%s)",
+                name,
+                n,
+                msg.get_type(),
+                msg.get_srcSystem(),
+                msg.get_srcComponent(),
+                self.target_system,
+                self.target_component,
+            )
 
     # -- send / wait ------------------------------------------------------------------------
 

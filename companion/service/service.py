@@ -863,6 +863,8 @@ class Service:
         ranges = self.tel.range_vector(now, self.limits.sensor_max_age_s)
         try:
             result = self.planner.step(state, ranges, dt)
+            if not _finite_setpoint(result.setpoint):
+                raise FloatingPointError(f"non-finite setpoint {result.setpoint}")
             self._planner_failed = False
         except Exception:  # a planner bug must not crash the service: hold instead
             self._planner_failed = True
@@ -932,6 +934,9 @@ class Service:
     def _send_setpoint(self, sp: Setpoint, now: float) -> None:
         home = self.tel.home
         if self.frame is None or home is None or self.setpoint_frame is None:
+            return
+        if not _finite_setpoint(sp):  # never on the wire, whatever produced it
+            self.counters["setpoints_refused_nonfinite"] += 1
             return
         ts, tc = self.conn.target_system, self.conn.target_component
         assert ts is not None and tc is not None
@@ -1023,6 +1028,14 @@ class Service:
         }
 
 
+def _finite_setpoint(sp: Setpoint) -> bool:
+    return bool(
+        np.all(np.isfinite(sp.position_enu))
+        and np.all(np.isfinite(sp.velocity_enu))
+        and math.isfinite(sp.yaw_rad)
+    )
+
+
 def _codec_fields() -> tuple[str, ...]:
     from dataclasses import fields
 
@@ -1052,6 +1065,7 @@ _PROBLEM_PREFIXES = (
     "signing.rejected",
     "service.cycle_overruns",
     "service.planner_errors",
+    "service.setpoints_refused",
     "statustext.dropped",
 )
 

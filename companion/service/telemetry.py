@@ -38,6 +38,8 @@ from companion.service.codec import MAVLinkMessage
 log = logging.getLogger("companion.service.telemetry")
 
 REBOOT_BACKSTEP_MS = 3000
+LOG_AT_COUNTS = frozenset(10**k for k in range(19))
+"""Counts at which a counter is logged: 1, 10, 100, ..."""
 MEDIAN_GAP_S = 0.5
 """A range history older than this is not filtered with new readings."""
 MAX_ACCEL_MPS2 = 10.0
@@ -193,8 +195,15 @@ class Telemetry:
             return None
         return kind if handler(self, msg, t_rx) else None
 
-    def _reject(self, what: str) -> bool:
-        self.counters[f"rejected_{what}"] += 1
+    def _count(self, name: str, level: int = logging.INFO, detail: str = "") -> None:
+        """Count `name`; log it the 1st, 10th, 100th, ... time (bounded log volume)."""
+        n = self.counters[name] + 1
+        self.counters[name] = n
+        if n in LOG_AT_COUNTS:
+            log.log(level, "input.%s: %d so far%s", name, n, detail)
+
+    def _reject(self, what: str, detail: str = "") -> bool:
+        self._count(f"rejected_{what}", logging.WARNING, detail and f" ({detail})")
         return False
 
     def _in_order(self, key: str, time_boot_ms: int) -> bool:
@@ -204,13 +213,13 @@ class Telemetry:
         last = self._last_boot_ms.get(key)
         if last is not None and time_boot_ms <= last:
             if last - time_boot_ms > REBOOT_BACKSTEP_MS:
-                self.counters["time_boot_backwards"] += 1
+                self._count("time_boot_backwards", logging.WARNING, f" ({key})")
                 self.reboots += 1
                 counters, reboots = self.counters, self.reboots
                 self.reset()
                 self.counters, self.reboots = counters, reboots
             else:
-                self.counters["out_of_order" if time_boot_ms < last else "duplicate"] += 1
+                self._count("out_of_order" if time_boot_ms < last else "duplicate")
                 return False
         self._last_boot_ms[key] = time_boot_ms
         return True
@@ -232,9 +241,9 @@ class Telemetry:
         r, p, y = float(msg.roll), float(msg.pitch), float(msg.yaw)
         rates = (float(msg.rollspeed), float(msg.pitchspeed), float(msg.yawspeed))
         if not all(math.isfinite(v) for v in (r, p, y, *rates)):
-            return self._reject("attitude_nonfinite")
+            return self._reject("attitude_nonfinite", f"roll {r} pitch {p} yaw {y}")
         if abs(r) > math.pi + 1e-3 or abs(p) > math.pi / 2 + 1e-3 or abs(y) > 2 * math.pi + 1e-3:
-            return self._reject("attitude_range")
+            return self._reject("attitude_range", f"roll {r} pitch {p} yaw {y}")
         if not self._in_order("ATTITUDE", int(msg.time_boot_ms)):
             return False
         self.attitude = Attitude(r, p, y, int(msg.time_boot_ms), t_rx)
@@ -243,10 +252,10 @@ class Telemetry:
     def _global_position(self, msg: MAVLinkMessage, t_rx: float) -> bool:
         lat, lon = msg.lat * 1e-7, msg.lon * 1e-7
         alt, rel = msg.alt * 1e-3, msg.relative_alt * 1e-3
-        if not valid_lat_lon(lat, lon):
-            return self._reject("position_range")
-        if not (-1_000.0 <= alt <= 50_000.0 and -10_000.0 <= rel <= 50_000.0):
-            return self._reject("position_range")
+        if not valid_lat_lon(lat, lon) or not (
+            -1_000.0 <= alt <= 50_000.0 and -10_000.0 <= rel <= 50_000.0
+        ):
+            return self._reject("position_range", f"lat {lat} lon {lon} alt {alt} rel {rel}")
         if not self._in_order("GLOBAL_POSITION_INT", int(msg.time_boot_ms)):
             return False
         vel = (msg.vx * 0.01, msg.vy * 0.01, msg.vz * 0.01)
@@ -258,7 +267,7 @@ class Telemetry:
             if t_rx - self._jump_since < self.jump_accept_s:
                 self._last_boot_ms["GLOBAL_POSITION_INT"] = last.time_boot_ms
                 return self._reject("position_jump")
-            self.counters["position_jump_accepted"] += 1
+            self._count("position_jump_accepted", logging.WARNING)
             self.jumps_accepted += 1
             log.warning(
                 "position jump of %.1f m persisted %.1f s: accepted (estimator reset?)",
@@ -323,15 +332,19 @@ class Telemetry:
     def _distance_sensor(self, msg: MAVLinkMessage, t_rx: float) -> bool:
         index = self.sensors.index_of_id.get(int(msg.id))
         if index is None:
-            return self._reject("sensor_unknown_id")
+            return self._reject("sensor_unknown_id", f"id {int(msg.id)}")
         orientation = int(msg.orientation)
         boresight = self._msg_boresight(orientation, list(getattr(msg, "quaternion", [])))
         if boresight is None:
             if orientation != MAV_SENSOR_ROTATION_CUSTOM:
-                return self._reject("sensor_orientation_unknown")
-            self.counters["sensor_orientation_unverified"] += 1
+                return self._reject(
+                    "sensor_orientation_unknown", f"id {int(msg.id)} orientation {orientation}"
+                )
+            self._count("sensor_orientation_unverified")
         elif float(boresight @ self._expected_boresight[index]) < ORIENTATION_TOLERANCE_COS:
-            return self._reject("sensor_orientation_mismatch")
+            return self._reject(
+                "sensor_orientation_mismatch", f"id {int(msg.id)} orientation {orientation}"
+            )
         if not self._in_order(f"DISTANCE_SENSOR.{index}", int(msg.time_boot_ms)):
             return False
         spec = self.sensors.specs[index]
@@ -341,13 +354,13 @@ class Telemetry:
             lo, hi = max(lo, mn * 0.01), min(hi, mx * 0.01)
         d = cur * 0.01
         if cur == 0 or cur == UINT16_MAX:
-            self.counters["range_none"] += 1
+            self._count("range_none", detail=f" (sensor {spec.sensor_id}: {cur} cm)")
             d = 0.0
         elif d < lo:
-            self.counters["range_below_min"] += 1
+            self._count("range_below_min", detail=f" (sensor {spec.sensor_id}: {cur} cm)")
             d = 0.0
         elif d >= hi:
-            self.counters["range_at_max"] += 1
+            self._count("range_at_max", detail=f" (sensor {spec.sensor_id}: {cur} cm)")
             d = 0.0
         raw = RangeReading(d, int(msg.time_boot_ms), t_rx)
         self.ranges[index] = self._filtered(index, raw)
@@ -369,7 +382,7 @@ class Telemetry:
         ordered = sorted(history, key=lambda r: r.distance_m if r.distance_m > 0 else math.inf)
         median = ordered[n // 2].distance_m
         if median != reading.distance_m:
-            self.counters["range_filtered"] += 1
+            self._count("range_filtered")
         return RangeReading(median, reading.time_boot_ms, reading.t_rx)
 
     # -- queries ----------------------------------------------------------------------------
