@@ -382,9 +382,13 @@ def parse_config(data: Any, path: Path | None = None) -> ServiceConfig:
 def load_config(path: Path) -> ServiceConfig:
     """Read and validate a config file; ConfigError names each problem."""
     try:
-        text = path.read_text()
+        text = path.read_text(encoding="utf-8")
     except OSError as exc:
         raise ConfigError(path, [f"cannot read the file: {exc.strerror or exc}"]) from None
+    except UnicodeDecodeError as exc:
+        raise ConfigError(
+            path, [f"cannot read the file: not UTF-8 text (byte {exc.start})"]
+        ) from None
     try:
         data = yaml.safe_load(text)
     except yaml.YAMLError as exc:
