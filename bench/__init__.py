@@ -7,5 +7,7 @@ target is marked in the table. Machines are noisy, so compare figures of one run
 
 Modules: `flight` (a timed closed-loop flight), `planner` (Planner.step, steady and
 re-planning), `arc` (eq. (5) stepping, exact vs the paper's search), `simulator`
-(in-process speed), `raycast` (World.raycast per ray), `report` (table, JSON, machine).
+(in-process speed), `raycast` (World.raycast per ray), `service` (the service over UDP
+against the MAVLink simulator: latency, jitter, CPU, the pymavlink floor, lockstep speed,
+memory over a simulated hour), `report` (table, JSON, machine).
 """

@@ -8,10 +8,10 @@ import sys
 import time
 from pathlib import Path
 
-from bench import arc, planner, raycast, simulator
+from bench import arc, planner, raycast, service, simulator
 from bench.report import Section, machine, table, write_results
 
-NAMES = ("planner", "arc", "simulator", "raycast")
+NAMES = ("planner", "arc", "simulator", "raycast", "service")
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -48,6 +48,9 @@ def main(argv: list[str] | None = None) -> int:
     if "raycast" in only:
         log("ray casting")
         sections.append(raycast.run(flight, poses=100 if quick else 300))
+    if "service" in only:
+        log("service over UDP: real time (about a minute), lockstep for a simulated hour")
+        sections.append(service.run(quick))
     meta["wall_s"] = round(time.perf_counter() - started, 1)
     meta["quick"] = quick
     print(table(sections))

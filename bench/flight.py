@@ -64,6 +64,8 @@ class Flight:
     speed_ref: list[float] = field(default_factory=list)
     states: list[VehicleState] = field(default_factory=list)
     """The vehicle state each cycle was sensed from."""
+    ranges: list[FloatArray] = field(default_factory=list)
+    """The ranges the planner was given each cycle."""
     snapshots: list[Snapshot] = field(default_factory=list)
     finished: bool = False
 
@@ -107,6 +109,7 @@ def fly(
         t5 = clock()
         diag = result.diagnostics
         flight.states.append(state_before)
+        flight.ranges.append(ranges)
         flight.sense_ns.append(t1 - t0)
         flight.step_ns.append(t3 - t2)
         flight.vehicle_ns.append(t4 - t3)
@@ -118,6 +121,22 @@ def fly(
             flight.finished = True
             break
     return flight
+
+
+def replay_min(scenario: Scenario, world: World, flight: Flight, replays: int) -> np.ndarray:
+    """Planner.step durations (ns) of each cycle of the flight, replayed from its recorded
+    inputs by `replays` fresh planners: the least of them per cycle (what the step costs
+    without the machine's interruptions)."""
+    clock = time.perf_counter_ns
+    best = np.full(flight.cycles, np.iinfo(np.int64).max, dtype=np.int64)
+    route = scenario.route_obj()
+    for _ in range(replays):
+        planner = Planner(scenario.params(), scenario.sensor_table(), route, scenario.start(world))
+        for k, (state, ranges) in enumerate(zip(flight.states, flight.ranges, strict=True)):
+            t0 = clock()
+            planner.step(state, ranges, flight.dt_s)
+            best[k] = min(best[k], clock() - t0)
+    return best
 
 
 def split(flight: Flight) -> tuple[np.ndarray, np.ndarray]:

@@ -1,9 +1,12 @@
 """Planner.step: steady state and horizontal re-plans, from real flights.
 
 Steady state: every cycle of the paper scenario (7 obstacle + 4 surface sensors) that did
-not search for a correction, pooled over `runs` flights. Re-plan: the cycles that searched
-(a correction accepted, or none found and the planner blocked), from every scenario, and
-the paper's re-plan cycles replayed `replays` times each from a deep copy of the planner.
+not search for a correction, pooled over `runs` flights; and the same cycles replayed from
+their recorded inputs, the least of 5 replays per cycle (the machine's interruptions
+removed: steadier on a busy machine, and a floor for the pooled figures).
+Re-plan: the cycles that searched (a correction accepted, or none found and the planner
+blocked), from every scenario, and the paper's re-plan cycles replayed `replays` times each
+from a deep copy of the planner.
 """
 
 from __future__ import annotations
@@ -13,7 +16,7 @@ import time
 
 import numpy as np
 
-from bench.flight import Flight, fly, load, scenario_names, split
+from bench.flight import Flight, fly, load, replay_min, scenario_names, split
 from bench.report import Section, percentiles_us
 
 
@@ -39,6 +42,21 @@ def run(runs: int = 3, replays: int = 100) -> tuple[Section, Flight]:
     )
     sec.add("planner.steady.p99_us", "step, steady, p99", st["p99"], "us", ("<=", 150))
     sec.add("planner.steady.max_us", "step, steady, max", st["max"], "us")
+    best = replay_min(scenario, world, flight, replays=5)
+    steady_best = percentiles_us(best[~np.asarray(flight.replan, dtype=bool)])
+    sec.details["paper_steady_min_of_5_replays_us"] = steady_best
+    sec.add(
+        "planner.steady_replayed.median_us",
+        "step, steady, median (least of 5 replays per cycle)",
+        steady_best["median"],
+        "us",
+    )
+    sec.add(
+        "planner.steady_replayed.p99_us",
+        "step, steady, p99 (least of 5 replays per cycle)",
+        steady_best["p99"],
+        "us",
+    )
 
     # Replays of the paper's re-plan cycles: many samples of the same real work.
     replan_cycles = frozenset(int(i) for i in np.flatnonzero(flight.replan))

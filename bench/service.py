@@ -1,0 +1,325 @@
+"""The companion service over UDP loopback against sim/'s MAVLink simulator.
+
+Three measurements, each the real service (`companion.service.Service`) talking MAVLink 2
+to the real simulator (`sim.mavlink`) in another process, flying the paper scenario with its
+11 range sensors (auto start, ArduPilot personality, flight log on):
+
+- real time: the simulator at 1x streams ATTITUDE, GLOBAL_POSITION_INT and the 11
+  DISTANCE_SENSOR at 50 Hz, the service loops at 50 Hz in this process. The service's link
+  is a `UdpOutLink` that notes when each datagram is handed to the service and when each
+  setpoint leaves (`TimedLink`, injected like any link: the service is not patched).
+  Latency = setpoint send - arrival of the newest datagram before it; jitter = |interval
+  between setpoints - 20 ms|; CPU = this process's CPU time / wall time while flying.
+- the floor: what pymavlink alone costs per cycle (parse the 13 inputs, pack a setpoint),
+  and the service's CPU per cycle as a multiple of it.
+- lockstep: the simulator in this process, lockstep and as fast as possible; the service as
+  `companion run` in a child process (sim time). Simulated s per wall s while flying the
+  route, and the service's resident memory after 1 simulated minute and after 1 hour.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import math
+import signal
+import socket
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import yaml
+from pymavlink.dialects.v20 import ardupilotmega as mavlink
+
+from bench.flight import SCENARIO_DIR
+from bench.report import REPO, Section, percentiles_us
+from companion.config import parse_config
+from companion.service import Service
+from companion.service.link import Receiver, UdpOutLink
+from companion.service.notify import SystemdNotifier
+from sim.fly import service_config
+from sim.mavlink import SimServer
+from sim.scenario import Scenario, load_scenario
+
+PAPER = SCENARIO_DIR / "paper.yaml"
+RATE_HZ = 50.0
+SETPOINT_MSGID = mavlink.MAVLINK_MSG_ID_SET_POSITION_TARGET_GLOBAL_INT
+
+
+def _msgid(frame: bytes) -> int | None:
+    """Message id of a MAVLink frame (v2 or v1), None if it is not one."""
+    if len(frame) >= 10 and frame[0] == 0xFD:
+        return frame[7] | frame[8] << 8 | frame[9] << 16
+    if len(frame) >= 6 and frame[0] == 0xFE:
+        return frame[5]
+    return None
+
+
+class TimedLink(UdpOutLink):
+    """A `UdpOutLink` that notes when each datagram reaches the service and when each
+    setpoint is sent (perf_counter seconds)."""
+
+    def __init__(self, host: str, port: int) -> None:
+        super().__init__(host, port)
+        self.last_rx: float | None = None
+        self.setpoints: list[tuple[float, float | None]] = []
+        """(send time, arrival time of the newest datagram before it)."""
+
+    async def open(self, receiver: Receiver) -> None:
+        def timed(data: bytes, peer: Any) -> None:
+            self.last_rx = time.perf_counter()
+            receiver(data, peer)
+
+        await super().open(timed)
+
+    def send(self, data: bytes) -> None:
+        if _msgid(data) == SETPOINT_MSGID:
+            self.setpoints.append((time.perf_counter(), self.last_rx))
+        super().send(data)
+
+
+def _free_udp_port() -> int:
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+def _config(scenario: Scenario, port: int, log_dir: Path, **control: Any) -> dict[str, Any]:
+    """`companion fly`'s service configuration for the scenario, as a plain mapping, with
+    `control:` keys replaced. Home is where the simulator starts the vehicle."""
+    start = scenario.start_position or (*scenario.route.points[0], 0.0)
+    cfg = service_config(scenario, port, np.array(start[:2], dtype=float), log_dir)
+    doc: dict[str, Any] = cfg.model_dump(mode="json")
+    doc["control"].update(control)
+    return doc
+
+
+def pymavlink_floor(cycles: int = 2000) -> dict[str, float]:
+    """Microseconds per cycle for pymavlink to parse one cycle's inputs (11 DISTANCE_SENSOR,
+    ATTITUDE, GLOBAL_POSITION_INT) and pack one SET_POSITION_TARGET_GLOBAL_INT."""
+    tx = mavlink.MAVLink(None, srcSystem=1, srcComponent=1)
+    tx.robust_parsing = True
+    frames = [
+        tx.distance_sensor_encode(1000, 10, 1200, 350, 0, i, 0, 0).pack(tx) for i in range(11)
+    ]
+    frames.append(tx.attitude_encode(1000, 0.01, -0.02, 1.5, 0.0, 0.0, 0.0).pack(tx))
+    frames.append(
+        tx.global_position_int_encode(1000, 473977420, 85455940, 50000, 2000, 10, 0, 0, 9000).pack(
+            tx
+        )
+    )
+    rx = mavlink.MAVLink(None, srcSystem=2, srcComponent=191)
+    out = mavlink.MAVLink(None, srcSystem=1, srcComponent=191)
+    parsed = 0
+    t0 = time.perf_counter_ns()
+    for k in range(cycles):
+        for f in frames:
+            msgs = rx.parse_buffer(f)
+            parsed += len(msgs) if msgs else 0
+        out.set_position_target_global_int_encode(
+            k, 1, 1, 6, 0x9C0, 473977420, 85455940, 2.0, 0.5, 0.1, 0.0, 0.0, 0.0, 0.0, 1.5, 0.0
+        ).pack(out)
+    per_cycle_us = (time.perf_counter_ns() - t0) / cycles / 1e3
+    if parsed != cycles * len(frames):
+        raise RuntimeError(f"parsed {parsed} messages, expected {cycles * len(frames)}")
+    return {"per_cycle_us": per_cycle_us, "messages_per_cycle": len(frames) + 1}
+
+
+async def _wait(pred: Any, timeout_s: float, what: str) -> None:
+    deadline = time.monotonic() + timeout_s
+    while not pred():
+        if time.monotonic() > deadline:
+            raise TimeoutError(f"timed out waiting for {what}")
+        await asyncio.sleep(0.05)
+
+
+async def realtime(seconds: float) -> dict[str, Any]:
+    """The service at 50 Hz against the simulator at 1x, measured for `seconds` while the
+    planner flies."""
+    scenario = load_scenario(PAPER)
+    port = _free_udp_port()
+    serve = ["serve", str(PAPER), "--port", str(port), "--speedup", "1", "--prearm-delay", "0.5"]
+    sim = subprocess.Popen(
+        [sys.executable, "-m", "sim", *serve],
+        cwd=REPO,
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+    )
+    try:
+        with tempfile.TemporaryDirectory(prefix="bench-service-") as tmp:
+            doc = _config(scenario, port, Path(tmp), time_source="monotonic", rate_hz=RATE_HZ)
+            link = TimedLink("127.0.0.1", port)
+            svc = Service(parse_config(doc), link, notifier=SystemdNotifier({}))
+            task = asyncio.create_task(svc.run())
+            try:
+                await _wait(lambda: svc.counters["planner_starts"] >= 1, 90.0, "the planner")
+                await asyncio.sleep(1.0)
+                link.setpoints.clear()
+                cycles0 = svc.counters["cycles"]
+                cpu0, wall0 = time.process_time(), time.perf_counter()
+                await asyncio.sleep(seconds)
+                cpu1, wall1 = time.process_time(), time.perf_counter()
+                cycles = svc.counters["cycles"] - cycles0
+                setpoints = list(link.setpoints)
+                counters = svc.counter_values()
+            finally:
+                svc.stop()
+                await asyncio.wait_for(task, 10.0)
+    finally:
+        sim.terminate()
+        sim.wait(10)
+    sends = np.array([t for t, _ in setpoints])
+    latency_ns = [int((t - rx) * 1e9) for t, rx in setpoints if rx is not None]
+    jitter_ns = np.abs(np.diff(sends) - 1.0 / RATE_HZ) * 1e9
+    cpu_s = cpu1 - cpu0
+    return {
+        "seconds": wall1 - wall0,
+        "cycles": cycles,
+        "setpoints": len(setpoints),
+        "latency_us": percentiles_us(latency_ns),
+        "jitter_us": percentiles_us(jitter_ns),
+        "cpu_percent": 100.0 * cpu_s / (wall1 - wall0),
+        "cpu_per_cycle_us": 1e6 * cpu_s / max(cycles, 1),
+        "cycle_overruns": counters.get("service.cycle_overruns", 0),
+        "planner_errors": counters.get("service.planner_errors", 0),
+    }
+
+
+def _rss_mb(pid: int) -> float:
+    """Resident set size of a process (Linux /proc), MB; NaN where unavailable."""
+    try:
+        with open(f"/proc/{pid}/status", encoding="utf-8") as fh:
+            for line in fh:
+                if line.startswith("VmRSS:"):
+                    return int(line.split()[1]) / 1024.0
+    except OSError:
+        pass
+    return math.nan
+
+
+async def lockstep(hour_s: float, flight_s: tuple[float, float] = (20.0, 120.0)) -> dict[str, Any]:
+    """The simulator here (lockstep, as fast as possible), the service as `companion run` in
+    a child process. Speed over the flight's sim-time window flight_s; RSS at 60 s and at
+    hour_s of simulated time."""
+    scenario = load_scenario(PAPER)
+    server = SimServer.from_scenario(
+        scenario,
+        SCENARIO_DIR,
+        port=0,
+        speedup=math.inf,
+        lockstep={"enabled": True, "period_s": scenario.dt_s},
+        prearm_delay_s=0.5,
+    )
+    await server.start()
+    out: dict[str, Any] = {}
+    with tempfile.TemporaryDirectory(prefix="bench-lockstep-") as tmp:
+        home = server.autopilot.home_enu
+        cfg = service_config(scenario, server.port, np.array(home[:2], dtype=float), Path(tmp))
+        cfg_path = Path(tmp) / "service.yaml"
+        cfg_path.write_text(yaml.safe_dump(cfg.model_dump(mode="json")), encoding="utf-8")
+        proc = subprocess.Popen(
+            [sys.executable, "-m", "companion.cli", "run", "--config", str(cfg_path)],
+            cwd=REPO,
+            stdout=subprocess.DEVNULL,
+            stderr=subprocess.DEVNULL,
+        )
+        try:
+            await server.run_until(flight_s[0])
+            t0 = time.perf_counter()
+            await server.run_until(flight_s[1])
+            out["flight_speed_x"] = (flight_s[1] - flight_s[0]) / (time.perf_counter() - t0)
+            await server.run_until(60.0)
+            out["rss_1min_mb"] = _rss_mb(proc.pid)
+            t0 = time.perf_counter()
+            await server.run_until(hour_s)
+            out["hold_speed_x"] = (hour_s - 60.0) / (time.perf_counter() - t0)
+            out["rss_end_mb"] = _rss_mb(proc.pid)
+            out["sim_s"] = hour_s
+            out["lockstep_stalls"] = server.stats.lockstep_stalls
+            truth = server.truth
+            goal = np.array(scenario.route.points[-1], dtype=float)
+            out["final_distance_to_goal_m"] = float(
+                np.hypot(*(np.asarray(truth[-1].position_enu[:2]) - goal))
+            )
+        finally:
+            proc.send_signal(signal.SIGTERM)
+            try:
+                proc.wait(10)
+            except subprocess.TimeoutExpired:
+                proc.kill()
+            await server.close()
+    return out
+
+
+def run(quick: bool = False) -> Section:
+    sec = Section("service over UDP")
+    floor = pymavlink_floor(500 if quick else 2000)
+    rt = asyncio.run(realtime(8.0 if quick else 30.0))
+    ls = asyncio.run(lockstep(600.0 if quick else 3600.0))
+    sec.details.update({"pymavlink_floor": floor, "realtime": rt, "lockstep": ls})
+    lat, jit = rt["latency_us"], rt["jitter_us"]
+    sec.add(
+        "service.latency.median_us",
+        f"input -> setpoint latency, 50 Hz loop, median (n={lat.get('n', 0)})",
+        lat.get("median", math.nan),
+        "us",
+    )
+    sec.add(
+        "service.latency.p99_us",
+        "input -> setpoint latency, p99",
+        lat.get("p99", math.nan),
+        "us",
+        ("<=", 2000),
+    )
+    sec.add(
+        "service.jitter.p99_us",
+        "loop jitter (|interval - 20 ms|), p99",
+        jit.get("p99", math.nan),
+        "us",
+    )
+    sec.add("service.cpu_percent", "service CPU, % of one core", rt["cpu_percent"], "%", ("<=", 10))
+    sec.add("service.cpu_per_cycle_us", "service CPU per cycle", rt["cpu_per_cycle_us"], "us")
+    sec.add(
+        "service.floor_us",
+        "pymavlink parse (13 msgs) + pack (1) per cycle",
+        floor["per_cycle_us"],
+        "us",
+    )
+    sec.add(
+        "service.floor_ratio",
+        "service CPU per cycle / pymavlink floor",
+        rt["cpu_per_cycle_us"] / floor["per_cycle_us"],
+        "x",
+    )
+    sec.add(
+        "sim.udp_lockstep.speed_x",
+        "simulator + service over UDP, lockstep, flying",
+        ls["flight_speed_x"],
+        "x real time",
+        (">=", 20),
+    )
+    sec.add(
+        "sim.udp_lockstep.hold_speed_x",
+        "same, holding at the goal",
+        ls["hold_speed_x"],
+        "x real time",
+    )
+    growth = ls["rss_end_mb"] - ls["rss_1min_mb"]
+    sec.add(
+        "service.rss_growth_mb",
+        f"service RSS growth, 1 min -> {ls['sim_s'] / 60:.0f} min simulated",
+        growth,
+        "MB",
+        ("<=", 5),
+    )
+    sec.add("service.rss_mb", "service RSS after 1 min", ls["rss_1min_mb"], "MB")
+    return sec
+
+
+if __name__ == "__main__":  # a smoke run of this benchmark alone
+    from bench.report import table
+
+    print(table([run(quick="--quick" in sys.argv)]))
