@@ -19,6 +19,7 @@ import asyncio
 import contextlib
 import math
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -42,8 +43,6 @@ H_D_M = 2.0
 GOAL_X_M = 28.0
 DURATION_S = 48.0
 """Take-off (~4 s) plus ~30 m at 1 m/s with a detour round the pillar, and some margin."""
-FAULT_AT_S = 14.0
-"""Faults start here: the vehicle is in the air, on the route, before the pillar."""
 RESTART_GAP_S = 3.0
 
 
@@ -91,62 +90,64 @@ def scenario(mavlink: dict[str, Any] | None = None) -> Scenario:
 
 # --- the faults ----------------------------------------------------------------------------
 
-T0 = FAULT_AT_S
 IN_FLIGHT = [[8.0, DURATION_S]]
 """Link faults from take-over on: the service's command timeouts are wall-clock time, so in a
 simulation running ~8x faster than real time a lost ack during start-up costs ~8 simulated
 seconds per retry (start-up under loss is tested separately)."""
 
-FAULTS: dict[str, dict[str, Any]] = {
-    "none": {},
-    "sensor_dropouts": {"sensors": [{"dropout_probability": 0.2}]},
-    "sensor_dropout_window": {"sensors": [{"sensor_id": 8, "dropout_windows": [[T0, T0 + 2]]}]},
-    "stuck_range": {"sensors": [{"sensor_id": 2, "stuck_windows": [[T0 - 4, T0 + 6]]}]},
-    "stuck_surface": {"sensors": [{"sensor_id": 7, "stuck_windows": [[T0 - 8, T0 - 3]]}]},
-    "spikes": {"sensors": [{"spike_probability": 0.01}]},
-    "spikes_close": {"sensors": [{"spike_probability": 0.005, "spike_range_m": [0.3, 1.0]}]},
-    "noise": {"sensors": [{"noise_std_m": 0.05}]},
-    "gps_glitch": {
-        "position_jumps": [{"at_s": T0, "offset_m": [8.0, -6.0, 3.0], "duration_s": 0.4}]
+
+def fault_time(seed: int) -> float:
+    """When a scheduled fault strikes: 10-24 s, i.e. before, at and after the pillar
+    (passed at ~17-25 s), varied with the seed."""
+    return 10.0 + (seed * 3.7) % 14.0
+
+
+def _link(**probabilities: float) -> dict[str, Any]:
+    one = {**probabilities, "windows": IN_FLIGHT}
+    return {"outgoing": one, "incoming": one}
+
+
+FAULTS: dict[str, Callable[[float], dict[str, Any]]] = {
+    "none": lambda t0: {},
+    "sensor_dropouts": lambda t0: {"sensors": [{"dropout_probability": 0.2}]},
+    "sensor_dropout_window": lambda t0: {
+        "sensors": [{"sensor_id": 8, "dropout_windows": [[t0, t0 + 2.0]]}]
     },
-    "gps_reset": {"position_jumps": [{"at_s": T0, "offset_m": [4.0, 3.0, 0.0]}]},
-    "loss_5": {
-        "outgoing": {"loss_probability": 0.05, "windows": IN_FLIGHT},
-        "incoming": {"loss_probability": 0.05, "windows": IN_FLIGHT},
+    "stuck_range": lambda t0: {"sensors": [{"sensor_id": 2, "stuck_windows": [[t0 - 4, t0 + 6]]}]},
+    "stuck_surface": lambda t0: {
+        "sensors": [{"sensor_id": 7, "stuck_windows": [[t0 - 4, t0 + 1]]}]
     },
-    "loss_20": {
-        "outgoing": {"loss_probability": 0.2, "windows": IN_FLIGHT},
-        "incoming": {"loss_probability": 0.2, "windows": IN_FLIGHT},
+    "spikes": lambda t0: {"sensors": [{"spike_probability": 0.01}]},
+    "spikes_close": lambda t0: {
+        "sensors": [{"spike_probability": 0.005, "spike_range_m": [0.3, 1.0]}]
     },
-    "dup_reorder": {
-        "outgoing": {
-            "duplicate_probability": 0.05,
-            "reorder_probability": 0.05,
-            "windows": IN_FLIGHT,
-        },
-        "incoming": {
-            "duplicate_probability": 0.05,
-            "reorder_probability": 0.05,
-            "windows": IN_FLIGHT,
-        },
+    "noise": lambda t0: {"sensors": [{"noise_std_m": 0.05}]},
+    "gps_glitch": lambda t0: {
+        "position_jumps": [{"at_s": t0, "offset_m": [8.0, -6.0, 3.0], "duration_s": 0.4}]
     },
-    "link_cut_3s": {"link_cuts": [[T0, T0 + 3]]},
-    "reboot": {"reboots": [{"at_s": T0, "duration_s": 1.0}]},
-    "mode_change": {"mode_changes": [{"at_s": T0, "mode": "LOITER"}]},
-    "companion_restart": {},
+    "gps_reset": lambda t0: {"position_jumps": [{"at_s": t0, "offset_m": GPS_RESET_M}]},
+    "loss_5": lambda t0: _link(loss_probability=0.05),
+    "loss_20": lambda t0: _link(loss_probability=0.2),
+    "dup_reorder": lambda t0: _link(duplicate_probability=0.05, reorder_probability=0.05),
+    "link_cut_3s": lambda t0: {"link_cuts": [[t0, t0 + 3.0]]},
+    "reboot": lambda t0: {"reboots": [{"at_s": t0, "duration_s": 1.0}]},
+    "mode_change": lambda t0: {"mode_changes": [{"at_s": t0, "mode": "LOITER"}]},
+    "companion_restart": lambda t0: {},
 }
-"""Fault name -> the simulator's `faults:` section (seed added per flight)."""
+"""Fault name -> the simulator's `faults:` section for a fault at t0 (seed added per flight)."""
+
+GPS_RESET_M = (4.0, 3.0, 0.0)
 
 RANDOM_FAULTS = {
     "sensor_dropouts",
     "spikes",
+    "spikes_close",
     "noise",
     "loss_5",
     "loss_20",
     "dup_reorder",
 }
-"""Faults whose effect depends on the seed; the others are scheduled (the seed still varies
-the start heading jitter, see `fly_fault`)."""
+"""Faults whose draws depend on the seed; for the others the seed moves the fault's time."""
 
 
 @dataclass
@@ -171,6 +172,7 @@ class FlightOutcome:
     lockstep_stalls: int
     counters: dict[str, int]
     cycles: list[Cycle]
+    t0: float = 0.0
     restarts: int = 0
     wall_s: float = 0.0
     truth_t: np.ndarray = field(default_factory=lambda: np.zeros(0))
@@ -227,7 +229,8 @@ async def _kill(svc: Service, task: asyncio.Task[int]) -> None:
 async def fly_fault_async(
     fault: str, seed: int, out_dir: Path, personality: str = "ardupilot"
 ) -> FlightOutcome:
-    faults = {**FAULTS[fault], "seed": seed}
+    t0 = fault_time(seed)
+    faults = {**FAULTS[fault](t0), "seed": seed}
     sc = scenario({"faults": faults})
     wall0 = time.monotonic()
     server = SimServer.from_scenario(
@@ -249,18 +252,18 @@ async def fly_fault_async(
         t = 0.0
         while t < sc.duration_s and not svc.route_finished.is_set():
             step = 1.0
-            if fault == "companion_restart" and restarts == 0 and t + step > FAULT_AT_S:
-                await server.run_until(FAULT_AT_S)
+            if fault == "companion_restart" and restarts == 0 and t + step > t0:
+                await server.run_until(t0)
                 await _kill(svc, task)
                 restarts += 1
                 lockstep = server._lockstep_ticks
                 server._lockstep_ticks = 0  # nobody answers: do not wait for each tick
-                await server.run_until(FAULT_AT_S + RESTART_GAP_S)
+                await server.run_until(t0 + RESTART_GAP_S)
                 server._lockstep_ticks = lockstep
                 log_dirs.append(out_dir / f"flightlog-{restarts}")
                 cfg = _config(sc, server, log_dirs[-1])
                 svc, task = await _start_service(cfg, server.port)
-                t = FAULT_AT_S + RESTART_GAP_S
+                t = t0 + RESTART_GAP_S
                 continue
             t = min(t + step, sc.duration_s)
             await server.run_until(t)
@@ -307,6 +310,7 @@ async def fly_fault_async(
         lockstep_stalls=server.stats.lockstep_stalls,
         counters=svc.counter_values(),
         cycles=cycles,
+        t0=t0,
         restarts=restarts,
         wall_s=time.monotonic() - wall0,
         truth_t=t_arr,
@@ -319,3 +323,105 @@ def fly_fault(
     fault: str, seed: int, out_dir: Path, personality: str = "ardupilot"
 ) -> FlightOutcome:
     return asyncio.run(fly_fault_async(fault, seed, out_dir, personality))
+
+
+# --- the sweep (long run) -------------------------------------------------------------------
+
+
+def classify(o: FlightOutcome) -> str:
+    """What the service did, in a word or two, from its log and counters."""
+    c = o.counters
+    kinds = {x.sp_kind for x in o.cycles if x.own == "engaged"}
+    released = any(x.own == "released" for x in o.cycles)
+    parts = []
+    if o.restarts:
+        parts.append("restarted")
+    if "hold" in kinds:
+        parts.append("hold")
+    if any(x.verdict == "stop" and x.own == "engaged" for x in o.cycles):
+        parts.append("stop")
+    if c.get("input.position_jump_accepted", 0):
+        parts.append("replan")
+    if released:
+        parts.append("released")
+    elif o.reached_goal:
+        parts.append("resume" if parts else "continue")
+    else:
+        parts.append("not finished")
+    return "+".join(parts)
+
+
+def sweep(
+    personality: str, seeds: range, out_dir: Path, faults: list[str] | None = None
+) -> list[dict[str, Any]]:
+    """Every fault x every seed; one summary row per flight (also written as JSON lines)."""
+    import json
+    import tempfile
+
+    rows = []
+    out_dir.mkdir(parents=True, exist_ok=True)
+    with (out_dir / f"sweep-{personality}.jsonl").open("w") as f:
+        for fault in faults or list(FAULTS):
+            for seed in seeds:
+                with tempfile.TemporaryDirectory() as d:
+                    try:
+                        o = fly_fault(fault, seed, Path(d), personality)
+                        row = {**o.summary(), "behaviour": classify(o), "t0": o.t0}
+                    except Exception as exc:  # a crash is a result too
+                        row = {
+                            "fault": fault,
+                            "seed": seed,
+                            "personality": personality,
+                            "error": repr(exc),
+                            "safe": False,
+                        }
+                rows.append(row)
+                f.write(json.dumps(row) + "\n")
+                f.flush()
+    return rows
+
+
+def table(rows: list[dict[str, Any]]) -> str:
+    """Markdown: per fault, flights, safe, min clearance, min height, reached, behaviours."""
+    from collections import Counter, defaultdict
+
+    by: dict[str, list[dict[str, Any]]] = defaultdict(list)
+    for r in rows:
+        by[r["fault"]].append(r)
+    lines = [
+        "| fault | flights | safe | min clearance m | min height m | reached goal | "
+        "service did (flights) |",
+        "| --- | --- | --- | --- | --- | --- | --- |",
+    ]
+    for fault, rs in by.items():
+        ok = [r for r in rs if "error" not in r]
+        beh = Counter(r.get("behaviour", "crash") for r in rs)
+        lines.append(
+            f"| {fault} | {len(rs)} | {sum(bool(r['safe']) for r in rs)} | "
+            f"{min((r['min_clearance_m'] for r in ok), default=float('nan')):.2f} | "
+            f"{min((r['min_height_m'] for r in ok), default=float('nan')):.2f} | "
+            f"{sum(bool(r.get('reached_goal')) for r in ok)} | "
+            + ", ".join(f"{k} ({v})" for k, v in beh.most_common())
+            + " |"
+        )
+    return "\n".join(lines)
+
+
+if __name__ == "__main__":
+    import argparse
+    import logging
+
+    ap = argparse.ArgumentParser(description="fault sweep against sim/ (see docs/reliability.md)")
+    ap.add_argument("--personality", default="ardupilot")
+    ap.add_argument("--seeds", type=int, default=20)
+    ap.add_argument("--faults", default="")
+    ap.add_argument("--out", type=Path, default=Path("out/reliability"))
+    args = ap.parse_args()
+    logging.disable(logging.WARNING)
+    result = sweep(
+        args.personality,
+        range(1, args.seeds + 1),
+        args.out,
+        args.faults.split(",") if args.faults else None,
+    )
+    print(table(result))

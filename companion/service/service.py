@@ -83,6 +83,8 @@ STREAM_IDS = {
     "DISTANCE_SENSOR": mavlink2.MAVLINK_MSG_ID_DISTANCE_SENSOR,
     "HOME_POSITION": mavlink2.MAVLINK_MSG_ID_HOME_POSITION,
 }
+STREAMS_LOST_S = 2.0
+"""Heartbeats without position this long: request the message rates again."""
 MIN_BASE_POINT_SPACING_M = 0.5
 """Base points closer than this to the vehicle when it takes over are taken as passed."""
 
@@ -205,6 +207,7 @@ class Service:
         self._hold: _Hold | None = None
         self._planner_failed = False
         self._replan = False
+        self._configured_at = 0.0
         self._priming = False
         self._auto_busy = False
         self._auto_done = False
@@ -515,6 +518,7 @@ class Service:
                 await asyncio.sleep(2.0)
                 continue
             self.configured = True
+            self._configured_at = self.clock.now()
             self.notifier.status("ready")
             if self.cfg.control.auto_start.enabled and not self._auto_done:
                 self._auto_done = True
@@ -677,6 +681,7 @@ class Service:
         self.counters["cycles"] += 1
         if not self.frame_frozen:
             self._update_frame()
+        self._check_streams(now)
         events = self._update_ownership(now, allow_engage=self.configured and not self._auto_busy)
         assessment = assess(now, self.tel, self.limits, self.required_sensors)
         verdict, fs_events = self.failsafe.update(now, assessment)
@@ -714,6 +719,24 @@ class Service:
             self.conn.send(statustext_message(sev, text))
         if self.flight_log is not None:
             self.flight_log.write(self._cycle_record(now, verdict, result, sp, sp_kind, events))
+
+    def _check_streams(self, now: float) -> None:
+        """Heartbeats but no position for STREAMS_LOST_S: the autopilot forgot our message
+        rates (a reboot shorter than the heartbeat timeout, before any stamped message could
+        show time going back): ask for them again."""
+        hb, pos = self.tel.heartbeat, self.tel.position
+        if not self.configured or hb is None or now - hb.t_rx > self.limits.heartbeat_timeout_s:
+            return
+        if pos is not None and now - pos.t_rx <= STREAMS_LOST_S:
+            return
+        if now - self._configured_at <= STREAMS_LOST_S:
+            return
+        self.counters["streams_rerequested"] += 1
+        log.warning(
+            "heartbeats but no position for %.1f s: requesting the rates again", STREAMS_LOST_S
+        )
+        self._configured_at = now
+        self._reconfigure.set()
 
     def _health(self, verdict: Verdict, sp_kind: str | None) -> Health:
         if self.ownership.engaged:

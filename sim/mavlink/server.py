@@ -375,10 +375,12 @@ class SimServer:
 
     def _scheduled_events(self, now: float) -> None:
         self.autopilot.estimate_offset_enu = self.schedule.position_offset(now)
-        t1 = now + self.dt_s - 1e-9
-        for _ in self.schedule.reboots_in(now, t1):
+        # [now, now + dt) shifted down by a hair: tick times are k * dt in floating point
+        # (13.700000000000001), so an event at 13.7 must not fall between two ticks.
+        t0, t1 = now - 1e-6, now + self.dt_s - 1e-6
+        for _ in self.schedule.reboots_in(t0, t1):
             self._reboot(now)
-        for spec in self.schedule.mode_changes_in(now, t1):
+        for spec in self.schedule.mode_changes_in(t0, t1):
             mode = self.personality.mode_from_spec(spec)
             self.autopilot.set_mode(mode, now, self.state, forced=True)
 
