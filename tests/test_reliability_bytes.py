@@ -8,8 +8,8 @@ ever sends is a TIMESYNC answer (it commands nothing). With signing on, not one 
 is accepted.
 
 Counts: the three tests feed 64 000 + 25 600 + 12 800 = 102 400 inputs (asserted). The long
-run (`pytest -m long`, tests/test_reliability_long.py) multiplies the examples by
-RELIABILITY_FUZZ_SCALE (default 10): 1 024 000 inputs.
+run (`pytest -m long`, tests/test_reliability_long.py) calls the same checks with ten times
+the examples: 1 024 000 inputs. RELIABILITY_FUZZ_SCALE=N scales the default tests too.
 """
 
 from __future__ import annotations
@@ -58,8 +58,18 @@ def run_datagrams(path: ReceivePath, examples: int) -> None:
 def test_fuzzed_datagrams_are_counted_and_command_nothing(
     caplog: pytest.LogCaptureFixture,
 ) -> None:
+    path = check_datagrams(SCALE)
+    # the problems are reported: one warning per problem counter (every 10 s in service)
+    with caplog.at_level(logging.WARNING, logger="companion.service"):
+        path.svc._report_counters()
+    logged = caplog.text
+    for name in ("codec.garbage", "codec.bad_crc", "codec.truncated", "link.oversized_dropped"):
+        assert name in logged
+
+
+def check_datagrams(scale: int) -> ReceivePath:
     path = ReceivePath()
-    examples = 250 * SCALE
+    examples = 250 * scale
     run_datagrams(path, examples)
     fed = path.fed
     assert fed.inputs >= examples * PER_EXAMPLE >= 64_000
@@ -72,20 +82,19 @@ def test_fuzzed_datagrams_are_counted_and_command_nothing(
     assert c.get("conn.handler_errors", 0) == 0
     assert c["codec.parser_errors"] == 0
     assert path.sent_types() <= {"TIMESYNC"}  # answers to TIMESYNC requests, nothing else
-    # the problems are reported: one warning per problem counter (every 10 s in service)
-    with caplog.at_level(logging.WARNING, logger="companion.service"):
-        path.svc._report_counters()
-    logged = caplog.text
-    for name in ("codec.garbage", "codec.bad_crc", "codec.truncated", "link.oversized_dropped"):
-        assert name in logged
+    return path
 
 
 def test_fuzzed_byte_stream_in_arbitrary_chunks() -> None:
     """TCP and serial: no datagram boundaries; a frame can be split across reads."""
+    check_stream(SCALE)
+
+
+def check_stream(scale: int) -> int:
     path = ReceivePath()
     link = MemoryLink("stream", datagram=False)
     path.svc.conn.link = link  # the codec keeps its state between chunks
-    examples = 100 * SCALE
+    examples = 100 * scale
     count = 0
 
     @fuzz_settings(examples)
@@ -102,7 +111,7 @@ def test_fuzzed_byte_stream_in_arbitrary_chunks() -> None:
         path.check_cache()
 
     fuzz()
-    assert count >= 25_600 * SCALE * 0.95  # a few short examples have fewer cut points
+    assert count >= 25_600 * scale * 0.95  # a few short examples have fewer cut points
     c = path.svc.counter_values()
     assert c["codec.garbage"] > 0 and c["codec.frames"] > 0
     assert c.get("conn.handler_errors", 0) == 0 and c["codec.parser_errors"] == 0
@@ -112,16 +121,22 @@ def test_fuzzed_byte_stream_in_arbitrary_chunks() -> None:
     good = MavCodec(1, 1).encode(mavlink2.MAVLink_heartbeat_message(2, 3, 1, 5, 4, 3))
     path.svc.conn._on_bytes(b"\x00" * 300 + good * 3, None)
     assert path.svc.codec.counters.frames > frames
+    return count
 
 
 def test_fuzzed_frames_never_accepted_with_signing_on() -> None:
+    check_signed(SCALE)
+
+
+def check_signed(scale: int) -> int:
     path = ReceivePath(signing_key=KEY)
     frames_before = path.svc.codec.counters.frames  # the signed heartbeat that locked it
-    examples = 50 * SCALE
+    examples = 50 * scale
     run_datagrams(path, examples)
-    assert path.fed.inputs >= 12_800 * SCALE
+    assert path.fed.inputs >= 12_800 * scale
     assert path.fed.nonempty_uncounted == 0
     c = path.svc.counter_values()
     assert path.svc.codec.counters.frames == frames_before  # not one fuzzed frame accepted
     assert c["codec.unsigned_rejected"] > 0
     assert path.sent_types() == set()  # no TIMESYNC answers either: nothing got in
+    return path.fed.inputs

@@ -56,6 +56,9 @@ class LinkStats:
     errors: int = 0
     """Transport errors reported by the OS (ICMP unreachable, EIO, ...)."""
     reconnects: int = 0
+    kernel_dropped: int = 0
+    """UDP datagrams the kernel dropped because the socket's receive buffer was full (the
+    service reads too slowly), from /proc/net/udp on Linux; updated by `refresh()`."""
 
     def as_dict(self) -> dict[str, int]:
         return dataclasses.asdict(self)
@@ -85,6 +88,10 @@ class Link(abc.ABC):
 
     def pin_peer(self, peer: Peer) -> None:  # noqa: B027 - optional hook, no-op by default
         """Tell a listening link where the autopilot is (replies go only there)."""
+
+    def refresh_stats(self) -> LinkStats:
+        """Update the statistics the OS keeps (kernel drops); returns `stats`."""
+        return self.stats
 
     def _deliver(self, data: bytes, peer: Peer) -> None:
         self.stats.chunks_in += 1
@@ -196,6 +203,24 @@ def _buffered(transport: asyncio.BaseTransport) -> int:
     return int(size()) if size is not None else 0
 
 
+def udp_kernel_drops(fd: int) -> int | None:
+    """Datagrams the kernel dropped on this UDP socket (Linux /proc/net/udp*), else None."""
+    try:
+        inode = str(os.fstat(fd).st_ino)
+    except OSError:
+        return None
+    for table in ("/proc/net/udp", "/proc/net/udp6"):
+        try:
+            with open(table) as f:
+                for line in f:
+                    cols = line.split()
+                    if len(cols) > 12 and cols[9] == inode:
+                        return int(cols[12])
+        except (OSError, ValueError):
+            continue
+    return None
+
+
 class _UdpLink(Link):
     datagram = True
 
@@ -222,6 +247,15 @@ class _UdpLink(Link):
             return
         self.stats.chunks_out += 1
         self.stats.bytes_out += len(data)
+
+    def refresh_stats(self) -> LinkStats:
+        t = self._transport
+        sock = t.get_extra_info("socket") if t is not None else None
+        if sock is not None:
+            drops = udp_kernel_drops(sock.fileno())
+            if drops is not None:
+                self.stats.kernel_dropped = drops
+        return self.stats
 
     @property
     def local_address(self) -> tuple[str, int]:

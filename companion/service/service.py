@@ -276,7 +276,7 @@ class Service:
     def counter_values(self) -> dict[str, int]:
         """Every counter by dotted name (see docs/service.md)."""
         out: dict[str, int] = {}
-        out.update({f"link.{k}": v for k, v in self.link.stats.as_dict().items()})
+        out.update({f"link.{k}": v for k, v in self.link.refresh_stats().as_dict().items()})
         out.update({f"codec.{k}": getattr(self.codec.counters, k) for k in _codec_fields()})
         out.update({f"conn.{k}": v for k, v in self.conn.counters.items()})
         out.update({f"input.{k}": v for k, v in self.tel.counters.items()})
@@ -1083,6 +1083,7 @@ _PROBLEM_PREFIXES = (
     "input.position_jump",
     "link.send_dropped",
     "link.oversized",
+    "link.kernel_dropped",
     "link.errors",
     "signing.bad",
     "signing.rejected",

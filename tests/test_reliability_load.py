@@ -1,0 +1,136 @@
+"""Load: a flood of 10x the normal message rate and beyond, over real UDP.
+
+The normal rate is what the service asks for: 20 Hz of ATTITUDE, GLOBAL_POSITION_INT and
+each DISTANCE_SENSOR (3 sensors here: 100 messages/s, plus heartbeat and home). A separate
+process streams them at 10x (1000/s, one message per datagram) instead of the autopilot,
+then far beyond what one core can parse. The control loop must keep its rate within 5 %,
+traced memory must not grow, and what cannot be read is dropped by the kernel and counted
+(`link.kernel_dropped`); what is read but stale is counted too (`input.duplicate`, ...).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import subprocess
+import sys
+import time
+import tracemalloc
+from collections.abc import AsyncIterator
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from companion.service import Service
+from companion.service.link import UdpInLink, UdpOutLink
+from companion.service.notify import SystemdNotifier
+from tests.service_fakes import FakeAutopilot, PlannerBox, make_config
+
+pytestmark = pytest.mark.timeout(60)
+
+GUIDED = 4
+NORMAL_RATE = 3 * 20 + 2 * 20  # ATTITUDE, GLOBAL_POSITION_INT and 3 sensors at 20 Hz
+ROOT = Path(__file__).resolve().parents[1]
+
+
+async def until(pred: Any, timeout: float = 5.0) -> None:
+    deadline = time.monotonic() + timeout
+    while not pred():
+        if time.monotonic() > deadline:
+            raise TimeoutError("condition not met")
+        await asyncio.sleep(0.01)
+
+
+@contextlib.asynccontextmanager
+async def flying() -> AsyncIterator[tuple[Service, FakeAutopilot, int]]:
+    link = UdpInLink("127.0.0.1", 0)
+    svc = Service(make_config(), link, planner_factory=PlannerBox(), notifier=SystemdNotifier({}))
+    task = asyncio.create_task(svc.run())
+    await until(lambda: link._transport is not None)
+    host, port = link.local_address
+    ap = FakeAutopilot(UdpOutLink(host, port))
+    await ap.start()
+    try:
+        await until(lambda: svc.configured)
+        ap.set_mode(GUIDED)
+        await ap.wait_for(lambda: len(ap.setpoints()) >= 10)
+        yield svc, ap, port
+    finally:
+        svc.stop()
+        assert await asyncio.wait_for(task, 5) == 0
+        await ap.stop()
+
+
+async def flood(
+    svc: Service, ap: FakeAutopilot, port: int, rate: float, seconds: float
+) -> dict[str, float]:
+    """Stream at `rate` messages/s from another process; the loop's figures meanwhile."""
+    ap.telemetry_enabled = False  # the flood replaces the autopilot's streams
+    await asyncio.sleep(0.1)
+    tracemalloc.start()
+    try:
+        mem0 = tracemalloc.get_traced_memory()[0]
+        c0 = svc.counter_values()
+        t0 = time.monotonic()
+        proc = await asyncio.create_subprocess_exec(
+            sys.executable,
+            "-m",
+            "tests.reliability_flood",
+            "127.0.0.1",
+            str(port),
+            str(rate),
+            str(seconds),
+            repr(ap._boot),
+            cwd=ROOT,
+            stdout=subprocess.PIPE,
+        )
+        out, _ = await proc.communicate()
+        elapsed = time.monotonic() - t0
+        c1 = svc.counter_values()
+        mem1 = tracemalloc.get_traced_memory()[0]
+    finally:
+        tracemalloc.stop()
+        ap.telemetry_enabled = True
+    sent = int(out.decode().strip() or 0)
+    d = {k: c1.get(k, 0) - c0.get(k, 0) for k in c1}
+    return {
+        "sent": sent,
+        "sent_per_s": sent / seconds,
+        "elapsed_s": elapsed,
+        "cycle_hz": d["service.cycles"] / elapsed,
+        "received": d["link.chunks_in"],
+        "kernel_dropped": d["link.kernel_dropped"],
+        "accepted": d["conn.accepted"],
+        "stale_dropped": d.get("input.duplicate", 0) + d.get("input.out_of_order", 0),
+        "overruns": d.get("service.cycle_overruns", 0),
+        "hold_cycles": d.get("service.hold_cycles", 0),
+        "memory_growth_bytes": mem1 - mem0,
+    }
+
+
+async def test_flood_10x_keeps_the_loop_rate() -> None:
+    async with flying() as (svc, ap, port):
+        f = await flood(svc, ap, port, rate=10 * NORMAL_RATE, seconds=3.0)
+        print(f)
+        assert f["sent_per_s"] >= 0.95 * 10 * NORMAL_RATE
+        assert f["cycle_hz"] == pytest.approx(20.0, rel=0.05)
+        assert f["received"] + f["kernel_dropped"] >= 0.99 * f["sent"]
+        assert f["hold_cycles"] == 0  # the data kept flowing
+        assert f["stale_dropped"] > 0  # same-instant repeats: dropped and counted
+        assert f["memory_growth_bytes"] < 1_000_000
+        assert svc.ownership.engaged
+
+
+async def test_flood_beyond_capacity_is_dropped_and_counted() -> None:
+    """Far more than one core can parse: the kernel drops the rest, counted, and the loop
+    still keeps its rate (the event loop alternates reads with the cycle's timer)."""
+    async with flying() as (svc, ap, port):
+        f = await flood(svc, ap, port, rate=60_000, seconds=2.0)
+        print(f)
+        assert f["cycle_hz"] == pytest.approx(20.0, rel=0.05)
+        assert f["memory_growth_bytes"] < 1_000_000
+        assert f["received"] + f["kernel_dropped"] >= 0.99 * f["sent"]
+        if f["received"] < 0.95 * f["sent"]:  # the service could not keep up...
+            assert f["kernel_dropped"] > 0  # ...and the drops are counted
+        assert svc.ownership.engaged
