@@ -53,7 +53,7 @@ def _ranges_cm(spec: dict[str, Any], z: float) -> int:
 
 async def soak(hours: float, log_dir: Path, sample_every_s: float = 600.0) -> dict[str, Any]:
     dt = 0.05
-    legs = max(4, int(hours * 3600 / 100) + 4)  # 100 m legs at ~1 m/s
+    legs = max(4, int(hours * 3600 / 50) + 4)  # legs of 20 m and ~100 m at ~1 m/s
     points = [[100.0 * (i // 2 + 1), 20.0 * (i % 2)] for i in range(legs)]
     cfg = parse_config(
         {
