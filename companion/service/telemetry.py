@@ -168,6 +168,7 @@ class Telemetry:
         self.counters: Counter[str] = Counter()
         self._expected_boresight = [s.boresight_frd for s in sensors.specs]
         self._boresight_cache: dict[int, FloatArray | None] = {}
+        self._quaternion_cache: dict[tuple[float, ...], FloatArray | None] = {}
         self.reboots = 0
         self.reset()
 
@@ -318,10 +319,15 @@ class Telemetry:
 
     def _msg_boresight(self, orientation: int, quaternion: list[float]) -> FloatArray | None:
         if orientation == MAV_SENSOR_ROTATION_CUSTOM:
-            q = np.asarray(quaternion, dtype=np.float64)
-            if q.shape != (4,) or not np.all(np.isfinite(q)) or np.linalg.norm(q) < 1e-6:
-                return None
-            return boresight_from_quaternion_frd(q)
+            # A sensor sends the same quaternion every time: convert each one once.
+            key = tuple(quaternion)
+            if key not in self._quaternion_cache:
+                if len(self._quaternion_cache) > 256:  # a sender varying it: stay bounded
+                    self._quaternion_cache.clear()
+                q = np.asarray(quaternion, dtype=np.float64)
+                ok = q.shape == (4,) and np.all(np.isfinite(q)) and np.linalg.norm(q) >= 1e-6
+                self._quaternion_cache[key] = boresight_from_quaternion_frd(q) if ok else None
+            return self._quaternion_cache[key]
         if orientation not in self._boresight_cache:
             try:
                 self._boresight_cache[orientation] = boresight_from_mav_orientation(orientation)
