@@ -27,11 +27,11 @@ simulate: $(STAMP)
 test: $(STAMP) lint typecheck pytest
 
 lint: $(STAMP)
-	$(BIN)/ruff check companion sim tests
-	$(BIN)/ruff format --check companion sim tests
+	$(BIN)/ruff check companion sim tests bench
+	$(BIN)/ruff format --check companion sim tests bench
 
 typecheck: $(STAMP)
-	$(BIN)/mypy companion sim
+	$(BIN)/mypy companion sim bench
 
 pytest: $(STAMP)
 	$(BIN)/pytest -q
