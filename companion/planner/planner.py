@@ -177,6 +177,7 @@ class Planner:
         self._mode = PathMode.ROUTE
         self._side = Side.NONE
         self._avoid_side = Side.NONE
+        self._after_retreat: tuple[PathMode, Side, float] | None = None
         self._detour_end_s = 0.0
         self._blocked = False
         self._stops: list[float] = []
@@ -313,9 +314,14 @@ class Planner:
         self._xd_prev = x_d
 
         if self._mode is not PathMode.ROUTE and self._s >= self._detour_end_s:
-            if self._mode is not PathMode.RETREAT:
+            if self._after_retreat is not None:
+                # Backed out: now the correction on the other side.
+                self._mode, self._side, self._detour_end_s = self._after_retreat
+                self._after_retreat = None
+            else:
                 events.append("obstacle passed, back on route")
-            self._mode, self._side = PathMode.ROUTE, Side.NONE
+                self._mode, self._side = PathMode.ROUTE, Side.NONE
+                self._avoid_side = Side.NONE
         finished = (
             self._path.length - self._s <= params.goal_tolerance_m
             and self._v <= _STOPPED_MPS
@@ -397,6 +403,7 @@ class Planner:
         self._segment, self._t = 0, 0.0
         self._mode, self._side = mode, side
         self._stops = []
+        self._after_retreat = None
 
     def _record_track(self, x: float, y: float) -> None:
         last = self._track[-1]
@@ -502,7 +509,7 @@ class Planner:
             return False
         seglen = np.hypot(*np.diff(track, axis=0).T)
         along = np.concatenate([[0.0], np.cumsum(seglen)])
-        failed = self._side if self._side is not Side.NONE else Side.NONE
+        failed = self._side
         for back_m in _RETREAT_STEPS_M:
             if back_m > along[-1]:
                 break
@@ -534,6 +541,10 @@ class Planner:
             self._stops = [0.0, back.length]
             self._avoid_side = failed
             self._detour_end_s = back.length
+            rejoin_on_path = (
+                back.length + detour.path.length - (self.route.length - detour.rejoin_s)
+            )
+            self._after_retreat = (detour.mode, detour.side, rejoin_on_path)
             events.append(f"dead end: backing out {back_m:.0f} m, then {detour.side.value}")
             self._blocked = False
             return True
