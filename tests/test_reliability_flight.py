@@ -109,3 +109,29 @@ def test_scheduled_faults_never_fall_between_ticks() -> None:
 
     modes = asyncio.run(run())
     assert "LOITER" in modes and modes.index("LOITER") == 8
+
+
+def test_sim_position_jump_and_link_fault_windows() -> None:
+    """The simulator's new faults: a position offset in a window (or for good), and link
+    faults that apply only within their windows."""
+    from sim.mavlink.config import FaultsConfig, LinkFaultConfig
+    from sim.mavlink.faults import FaultSchedule, LinkFaults, fault_rngs
+
+    sched = FaultSchedule(
+        FaultsConfig.model_validate(
+            {
+                "position_jumps": [
+                    {"at_s": 1.0, "offset_m": [1, 2, 3], "duration_s": 0.5},
+                    {"at_s": 2.0, "offset_m": [10, 0, 0]},
+                ]
+            }
+        )
+    )
+    assert list(sched.position_offset(0.99)) == [0, 0, 0]
+    assert list(sched.position_offset(1.2)) == [1, 2, 3]
+    assert list(sched.position_offset(1.5)) == [0, 0, 0]
+    assert list(sched.position_offset(100.0)) == [10, 0, 0]
+    link: LinkFaults[int] = LinkFaults(
+        LinkFaultConfig(loss_probability=1.0, windows=[(1.0, 2.0)]), fault_rngs(1)[1]
+    )
+    assert link.filter(1, 0.5) == [1] and link.filter(2, 1.5) == [] and link.filter(3, 2.0) == [3]
