@@ -49,6 +49,7 @@ OBSTACLE_MIN_RISE_M = 0.01
 """An obstacle feature is solid only where it rises more than this above the terrain (m)."""
 _FOOTPRINT_EPS_M = 0.01  # a gaussian hill's footprint: where it adds more than this
 _CULL_EPS_M = 1e-12  # beyond this contribution a feature is skipped during evaluation
+_TINY = 1e-200  # stands in for a zero direction component in slab tests
 
 XY = tuple[float, float]
 BBox = tuple[float, float, float, float]  # xmin, xmax, ymin, ymax
@@ -195,6 +196,10 @@ class _Feature(ABC):
     solid: bool
     footprint_bbox: BBox | None  # where it matters (plots, raster extent); None = unbounded
     cull_bbox: BBox | None  # outside it the feature has no effect at all
+    affine = False  # additive and affine in (x, y): the plane
+    lipschitz = 0.0  # additive: a bound of |grad| of the contribution (m/m)
+    curvature: float | None = 0.0  # additive: a bound of |Hessian| (1/m); None = not smooth
+    jerk: float | None = 0.0  # additive: a bound of its third derivative along a line (1/m^2)
 
     def __init__(self, name: str, type_: str, obstacle: bool) -> None:
         self.name = name
@@ -206,6 +211,16 @@ class _Feature(ABC):
 
     @abstractmethod
     def info(self) -> FeatureInfo: ...
+
+    def jet(self, x: float, y: float) -> tuple[float, float, float, float, float, float]:
+        """Smooth additive features: (value, d/dx, d/dy, d2/dx2, d2/dxdy, d2/dy2) at (x, y)."""
+        raise NotImplementedError(f"{self.type} has no analytic derivatives")
+
+    def ray_interval(self, o: FloatArray, d: FloatArray) -> tuple[FloatArray, FloatArray]:
+        """Solid features: (t_in, t_out), (n,) each, of the rays o + t d (o, d: (n, 3), no
+        zero components in d) inside the feature's solid (a convex column); empty where
+        t_in >= t_out."""
+        raise NotImplementedError(f"{self.type} is not a solid feature")
 
     def column_distance(self, px: float, py: float, pz: float) -> float:
         """Solid features: exact 3-D distance (m) from p to the feature's solid, which is
@@ -236,6 +251,12 @@ class _GaussianHill(_Feature):
         self.k_fp = self._k(_FOOTPRINT_EPS_M)
         self.footprint_bbox = self._bbox(self.k_fp)
         self.cull_bbox = self._bbox(self._k(_CULL_EPS_M))
+        smin = min(self.sx, self.sy)
+        self.lipschitz = abs(self.h) * math.exp(-0.5) / smin
+        self.curvature = abs(self.h) / (smin * smin)
+        # Along a line the hill is a 1-D gaussian of sigma >= smin: |(3s - s^3) e^(-s^2/2)|
+        # peaks at 1.379.
+        self.jerk = 1.38 * abs(self.h) / smin**3
 
     def _k(self, eps: float) -> float:
         """Number of sigmas at which the contribution falls to eps."""
@@ -251,6 +272,23 @@ class _GaussianHill(_Feature):
         u = (dx * self.c + dy * self.s) / self.sx
         v = (dy * self.c - dx * self.s) / self.sy
         return self.h * np.exp(-0.5 * (u * u + v * v))
+
+    def jet(self, x: float, y: float) -> tuple[float, float, float, float, float, float]:
+        dx, dy = x - self.cx, y - self.cy
+        c, s = self.c, self.s
+        ax, ay = 1.0 / (self.sx * self.sx), 1.0 / (self.sy * self.sy)
+        u = dx * c + dy * s
+        v = dy * c - dx * s
+        e = self.h * math.exp(-0.5 * (u * u * ax + v * v * ay))
+        gu, gv = -u * ax * e, -v * ay * e  # gradient in the hill's frame
+        huu = (u * u * ax - 1.0) * ax * e
+        hvv = (v * v * ay - 1.0) * ay * e
+        huv = u * v * ax * ay * e
+        gx, gy = gu * c - gv * s, gu * s + gv * c
+        hxx = c * c * huu - 2.0 * c * s * huv + s * s * hvv
+        hyy = s * s * huu + 2.0 * c * s * huv + c * c * hvv
+        hxy = c * s * (huu - hvv) + (c * c - s * s) * huv
+        return e, gx, gy, hxx, hxy, hyy
 
     def info(self) -> FeatureInfo:
         a = np.linspace(0.0, 2.0 * math.pi, 64, endpoint=False)
@@ -291,6 +329,43 @@ class _Mesa(_Feature):
             return np.where(r <= self.r, top, -np.inf)
         z = np.maximum(top - np.maximum(r - self.r, 0.0) * self.tan, self.ground)
         return np.where(r <= self.r_out, z, -np.inf)
+
+    def ray_interval(self, o: FloatArray, d: FloatArray) -> tuple[FloatArray, FloatArray]:
+        # The column is convex: z < top, r <= r_out and (mesa) r <= R + (top - z) / tan.
+        px, py, oz = o[:, 0] - self.cx, o[:, 1] - self.cy, o[:, 2]
+        dx, dy, dz = d[:, 0], d[:, 1], d[:, 2]
+        top = self.ground + self.h
+        a = np.maximum(dx * dx + dy * dy, 1e-300)
+        b = px * dx + py * dy
+        pp = px * px + py * py
+        disc = b * b - a * (pp - self.r_out * self.r_out)
+        sq = np.sqrt(np.maximum(disc, 0.0))
+        t_in = np.maximum((-b - sq) / a, 0.0)
+        t_out = np.where(disc >= 0.0, (sq - b) / a, -np.inf)
+        t_top = (top - oz) / dz  # z < top: before t_top going up, after it going down
+        t_in = np.where(dz < 0.0, np.maximum(t_in, t_top), t_in)
+        t_out = np.where(dz > 0.0, np.minimum(t_out, t_top), t_out)
+        if self.tan is not None:
+            # Cone r = G(t) = g0 + g1 t (G > 0 wherever z < top): q(t) = G^2 - r^2 >= 0.
+            g0 = self.r + (top - oz) / self.tan
+            g1 = -dz / self.tan
+            qa = g1 * g1 - a
+            qb = g0 * g1 - b
+            qc = g0 * g0 - pp
+            qd = qb * qb - qa * qc
+            sq = np.sqrt(np.maximum(qd, 0.0))
+            qq = -(qb + np.copysign(sq, qb))
+            r1, r2 = qc / qq, qq / qa
+            lo, hi = np.fmin(r1, r2), np.fmax(r1, r2)
+            # qa < 0: inside between the roots (if any); qa >= 0: two half-lines, the
+            # lower nappe's is the first one going up and the second one going down.
+            c_in = np.where(qa < 0.0, lo, np.where(dz > 0.0, -np.inf, hi))
+            c_out = np.where(
+                qa < 0.0, np.where(qd >= 0.0, hi, -np.inf), np.where(dz > 0.0, lo, np.inf)
+            )
+            t_in = np.fmax(t_in, c_in)
+            t_out = np.fmin(t_out, c_out)
+        return t_in, t_out
 
     def column_distance(self, px: float, py: float, pz: float) -> float:
         # A solid of revolution: work in the (r, z) half-plane. Its section is the region
@@ -345,6 +420,24 @@ class _Box(_Feature):
         inside = (np.abs(u) <= self.hl) & (np.abs(v) <= self.hw)
         return np.where(inside, self.top, -np.inf)
 
+    def ray_interval(self, o: FloatArray, d: FloatArray) -> tuple[FloatArray, FloatArray]:
+        # Slabs in the box's frame, and z < top.
+        ox, oy = o[:, 0] - self.cx, o[:, 1] - self.cy
+        dx, dy, dz = d[:, 0], d[:, 1], d[:, 2]
+        c, s = self.c, self.s
+        u0, du = ox * c + oy * s, dx * c + dy * s
+        v0, dv = oy * c - ox * s, dy * c - dx * s
+        du = np.where(du == 0.0, _TINY, du)
+        dv = np.where(dv == 0.0, _TINY, dv)
+        u1, u2 = (-self.hl - u0) / du, (self.hl - u0) / du
+        v1, v2 = (-self.hw - v0) / dv, (self.hw - v0) / dv
+        t_top = (self.top - o[:, 2]) / dz  # z < top: before t_top going up, after going down
+        t_in = np.maximum(np.minimum(u1, u2), np.minimum(v1, v2))
+        t_in = np.maximum(t_in, np.where(dz < 0.0, t_top, 0.0))
+        t_out = np.minimum(np.maximum(u1, u2), np.maximum(v1, v2))
+        t_out = np.minimum(t_out, np.where(dz > 0.0, t_top, np.inf))
+        return np.maximum(t_in, 0.0), t_out
+
     def column_distance(self, px: float, py: float, pz: float) -> float:
         dx, dy = px - self.cx, py - self.cy
         u = dx * self.c + dy * self.s
@@ -367,6 +460,12 @@ class _Plane(_Feature):
         d = math.radians(cfg.direction_deg)
         self.gx, self.gy = t * math.cos(d), t * math.sin(d)
         self.px, self.py = cfg.point
+        self.lipschitz = math.hypot(self.gx, self.gy)
+
+    affine = True
+
+    def jet(self, x: float, y: float) -> tuple[float, float, float, float, float, float]:
+        return (x - self.px) * self.gx + (y - self.py) * self.gy, self.gx, self.gy, 0.0, 0.0, 0.0
 
     def evaluate(self, x: FloatArray, y: FloatArray) -> FloatArray:
         return (x - self.px) * self.gx + (y - self.py) * self.gy
@@ -405,6 +504,14 @@ class _Heightmap(_Feature):
             self.oy + (self.nr - 1) * self.res,
         )
         self.footprint_bbox = self.cull_bbox = self.rect
+        # Bilinear cells: |grad| <= hypot(max |dz/dx| on the cell's x edges, same for y).
+        zx = np.abs(np.diff(self.z, axis=1)) / self.res
+        zy = np.abs(np.diff(self.z, axis=0)) / self.res
+        gx = np.maximum(zx[:-1], zx[1:])
+        gy = np.maximum(zy[:, :-1], zy[:, 1:])
+        self.lipschitz = float(np.sqrt(np.max(gx * gx + gy * gy)))
+        self.curvature = None
+        self.jerk = None
 
     def evaluate(self, x: FloatArray, y: FloatArray) -> FloatArray:
         fx = (x - self.ox) / self.res
@@ -640,6 +747,43 @@ def _local_min(
         gx, gy = _GRID_NEXT
 
 
+_UNIT_STEPS: dict[int, FloatArray] = {}
+
+
+def _unit_steps(m: int) -> FloatArray:
+    """(m + 1,) evenly spaced from 0 to 1 (cached)."""
+    u = _UNIT_STEPS.get(m)
+    if u is None:
+        u = _UNIT_STEPS[m] = np.arange(m + 1) / m
+    return u
+
+
+def _parabola_root(
+    f: list[float], k: int, m: int, end: float, dh2: float, jerk: float, tol: float
+) -> float | None:
+    """The crossing in the scan's bracket [t_k, t_k+1] (t_i = end i / m) from the parabola
+    through three samples f = f(t_i0 .. t_i0+2), i0 = max(k - 1, 0), if its error is known
+    to be below tol / 2, else None. The parabola is within e = 0.0642 J |dh|^3 w^3 of the
+    terrain function (J: bound of the third derivative along a line, w: spacing), so every
+    crossing lies within e / S of its root, S being its least slope on the bracket."""
+    i0 = max(k - 1, 0)
+    if len(f) < 3:
+        return None
+    f0, f1, f2 = f
+    w = end / m
+    qa = 0.5 * (f2 - 2.0 * f1 + f0)  # p(s) = qa s^2 + (f1 - f0 - qa) s + f0, s = (t - t_i0) / w
+    sa = float(k - i0)  # the bracket is [sa, sa + 1]
+    pb = 2.0 * qa * sa + (f1 - f0 - qa)  # p'(sa)
+    pa = f1 if sa > 0.0 else f0  # p(sa) >= 0
+    slope = -max(pb, 2.0 * qa + pb)  # least descent over the bracket, per unit of s
+    if not slope > 0.0:
+        return None
+    if 0.0642 * jerk * dh2**1.5 * w**4 / slope > 0.5 * tol:
+        return None
+    u = 2.0 * pa / (math.sqrt(max(pb * pb - 4.0 * qa * pa, 0.0)) - pb)
+    return w * (i0 + sa + min(max(u, 0.0), 1.0))
+
+
 # --------------------------------------------------------------------------- world
 
 
@@ -649,7 +793,8 @@ class World:
     extent: (xmin, xmax, ymin, ymax) of the terrain raster used by surface_distance (outside
     it the search is analytic and slower); default the bounding box of the bounded
     features padded by margin_m. raster_cell_m: raster spacing, enlarged if the raster
-    would exceed max_raster_cells. ray_step_m: default ray-march step. Metres.
+    would exceed max_raster_cells. ray_step_m: the reference ray march's default step;
+    scan_step_m: the default sampling step of the terrain in `raycast`. Metres.
     """
 
     def __init__(
@@ -662,10 +807,11 @@ class World:
         raster_cell_m: float = 0.1,
         max_raster_cells: int = 8_000_000,
         ray_step_m: float = 0.1,
+        scan_step_m: float = 0.25,
     ) -> None:
         cfg = config if config is not None else WorldConfig()
-        if not (raster_cell_m > 0 and ray_step_m > 0 and margin_m >= 0):
-            raise ValueError("raster_cell_m and ray_step_m must be > 0, margin_m >= 0")
+        if not (raster_cell_m > 0 and ray_step_m > 0 and scan_step_m > 0 and margin_m >= 0):
+            raise ValueError("raster_cell_m, ray_step_m and scan_step_m must be > 0, margin_m >= 0")
         self.ground_z = float(cfg.ground_z_m)
         bd = Path(base_dir) if base_dir is not None else None
         feats = [_make_feature(f, self.ground_z, bd) for f in cfg.features]
@@ -699,6 +845,7 @@ class World:
         area = (x1 - x0) * (y1 - y0)
         self.raster_cell_m = max(raster_cell_m, math.sqrt(area / max_raster_cells))
         self.ray_step_m = ray_step_m
+        self.scan_step_m = scan_step_m
         self._terrain_raster: _Raster | None = None
         self._obstacle_cache: tuple[list[_Feature], _Raster | None] | None = None
 
@@ -809,6 +956,25 @@ class World:
 
     # ------------------------------------------------------------------ ray casting
 
+    @staticmethod
+    def _ray_args(
+        origins: ArrayLike, directions: ArrayLike, max_range_m: ArrayLike
+    ) -> tuple[FloatArray, FloatArray, FloatArray]:
+        """Validated (n, 3) origins, unit directions and (n,) ranges."""
+        o = np.asarray(origins, np.float64).reshape(-1, 3)
+        d = np.asarray(directions, np.float64).reshape(-1, 3)
+        n = o.shape[0]
+        if d.shape[0] != n:
+            raise ValueError(f"origins and directions differ in length: {n} vs {d.shape[0]}")
+        norm = np.sqrt(np.einsum("ij,ij->i", d, d))
+        if n and not (float(norm.min()) > 1e-12 and math.isfinite(float(norm.sum()))):
+            raise ValueError("ray directions must be finite and non-zero")
+        d = d / norm[:, None]
+        rng = np.broadcast_to(np.asarray(max_range_m, np.float64), (n,))
+        if n and not (float(rng.min()) >= 0.0 and math.isfinite(float(rng.sum()))):
+            raise ValueError("max_range_m must be finite and >= 0")
+        return o, d, rng
+
     def raycast(
         self,
         origins: ArrayLike,
@@ -820,23 +986,299 @@ class World:
         """Range (m) along each ray to the surface; inf if nothing within max_range_m.
 
         origins, directions: (n, 3) ENU (directions are normalised); max_range_m: (n,) or
-        scalar. A ray starting below the surface returns 0. Each ray is sampled every step_m
+        scalar. A ray starting below the surface returns 0.
+
+        The solid features (cylinder, box, mesa: convex columns) are intersected in closed
+        form. The terrain (ground, planes: affine along a ray, also closed form; hills and
+        height maps) is sampled every step_m at most (default scan_step_m) in one vectorised
+        evaluation; an interval between two samples above the terrain is cleared by a
+        Lipschitz bound of the terrain (its steepest slope), else subdivided, so nothing is
+        skipped however thin (except a sliver across a height map's edge, a step in the
+        terrain). The first crossing is then bracketed to tol_m by secant-guided
+        subdivision. `_raycast_march` is the plain ray-marching reference.
+        """
+        o, d, rng = self._ray_args(origins, directions, max_range_m)
+        n = o.shape[0]
+        step = self.scan_step_m if step_m is None else float(step_m)
+        if not step > 0:
+            raise ValueError(f"step_m must be > 0, got {step}")
+        if n == 0:
+            return np.full(0, np.inf)
+        d = np.where(d == 0.0, _TINY, d)  # no zero components: slab tests divide by them
+        r_max = float(rng.max())
+        lo3, hi3 = o.min(axis=0), o.max(axis=0)
+        box = (
+            float(lo3[0]) - r_max,
+            float(hi3[0]) + r_max,
+            float(lo3[1]) - r_max,
+            float(hi3[1]) + r_max,
+        )
+        end = rng.copy()  # the terrain matters up to the first solid's entry
+        with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+            for f in self._solid:
+                if _intersects(f.cull_bbox, box):
+                    t_in, t_out = f.ray_interval(o, d)
+                    t_in = np.where(t_in < t_out, t_in, np.inf)
+                    np.minimum(end, t_in, out=end)
+        solid_hit = end < rng if self._solid else np.zeros(n, bool)
+        # Terrain along ray i: f(t) = g0 + g1 t - N(x(t), y(t)): g the height above the
+        # affine part (ground and planes), N the sum of the other additive features.
+        g0 = o[:, 2] - self.ground_z
+        g1 = d[:, 2].copy()
+        nonlinear: list[_Feature] = []
+        for f in self._additive:
+            if f.affine:
+                assert isinstance(f, _Plane)
+                g0 = g0 - ((o[:, 0] - f.px) * f.gx + (o[:, 1] - f.py) * f.gy)
+                g1 = g1 - (d[:, 0] * f.gx + d[:, 1] * f.gy)
+            elif _intersects(f.cull_bbox, box):
+                nonlinear.append(f)
+        if not nonlinear:
+            with np.errstate(divide="ignore", invalid="ignore"):
+                t = np.where(g0 < 0.0, 0.0, np.where(g1 < 0.0, -g0 / g1, np.inf))
+            t_ter = np.where(t <= end, t, np.inf)
+        else:
+            t_ter = self._scan_terrain(o, d, end, g0, g1, nonlinear, step, tol_m)
+        out = np.where(solid_hit, end, np.inf)
+        return np.minimum(out, t_ter)
+
+    def _scan_terrain(
+        self,
+        o: FloatArray,
+        d: FloatArray,
+        end: FloatArray,
+        g0: FloatArray,
+        g1: FloatArray,
+        feats: list[_Feature],
+        step: float,
+        tol: float,
+    ) -> FloatArray:
+        """First t in [0, end] where g0 + g1 t < N(o + t d) (N: sum of feats), else inf.
+
+        One vectorised pass samples every ray at m + 1 points; an interval between samples
+        above the terrain is cleared when even the highest N its slope bound allows stays
+        under the ray. The first sample inside the terrain and the last one before it
+        bracket the crossing if no interval before that bracket is left uncleared; a ray
+        that grazes the terrain earlier is searched again more finely (`_scan_slow`).
+        """
+        n = o.shape[0]
+        lip = sum(f.lipschitz for f in feats)
+        m = max(2, math.ceil(float(end.max()) / step))
+        T = end[:, None] * _unit_steps(m)
+        N = self._sum_at(feats, o, d, T)
+        G = g0[:, None] + g1[:, None] * T
+        F = G - N
+        ins = F < 0.0
+        # Interval j is cleared if min G on it > max N: (N_j + N_j+1 + L |dh| w) / 2.
+        dh2 = d[:, 0] * d[:, 0] + d[:, 1] * d[:, 1]
+        wl = (end * (0.5 / m) * lip) * np.sqrt(dh2)
+        bad = np.minimum(G[:, :-1], G[:, 1:]) - 0.5 * (N[:, :-1] + N[:, 1:]) <= wl[:, None] - tol
+        bad |= ins[:, 1:]  # implied, but for rounding and a height map's edge (a step)
+        # Per ray in Python from here: the first interval not cleared (k) and the first
+        # sample inside (j; k < j where there is one).
+        ks: list[int] = np.argmax(bad, axis=1).tolist()
+        js: list[int] = np.argmax(ins, axis=1).tolist()
+        hits: list[bool] = np.any(ins, axis=1).tolist()
+        bads: list[bool] = np.any(bad, axis=1).tolist()
+        out = [math.inf] * n
+        jerk: float | None = 0.0
+        for f in feats:
+            jerk = None if f.jerk is None or jerk is None else jerk + f.jerk
+        refine: list[int] = []
+        slow: list[int] = []
+        for i in range(n):
+            if not bads[i]:
+                continue
+            k, j = ks[i], js[i]
+            if hits[i] and j == 0:
+                out[i] = 0.0
+            elif not hits[i] or j - k > 2:
+                slow.append(i)
+            elif jerk is None or j != k + 1:
+                refine.append(i)
+            else:
+                t = _parabola_root(
+                    F[i, max(k - 1, 0) : max(k - 1, 0) + 3].tolist(),
+                    k,
+                    m,
+                    float(end[i]),
+                    float(dh2[i]),
+                    jerk,
+                    tol,
+                )
+                if t is None:
+                    refine.append(i)
+                else:
+                    out[i] = t
+        res = np.array(out)
+        if refine:
+            c = np.array(refine)
+            kc, jc = np.asarray(ks)[c], np.asarray(js)[c]
+            res[c] = self._refine_terrain(
+                o[c], d[c], g0[c], g1[c], feats, T[c, kc], T[c, jc], F[c, kc], F[c, jc], tol
+            )
+        if slow:
+            u = np.array(slow)
+            ku = np.asarray(ks)[u]
+            res[u] = self._scan_slow(o[u], d[u], T[u, ku], end[u], g0[u], g1[u], feats, step, tol)
+        return res
+
+    def _scan_slow(
+        self,
+        o: FloatArray,
+        d: FloatArray,
+        a: FloatArray,
+        end: FloatArray,
+        g0: FloatArray,
+        g1: FloatArray,
+        feats: list[_Feature],
+        step: float,
+        tol: float,
+        m_sub: int = 8,
+    ) -> FloatArray:
+        """`_scan_terrain` from a (above the terrain) on, splitting the intervals the slope
+        bound cannot clear until they are cleared, hold a crossing or are below tol."""
+        n = o.shape[0]
+        out = np.full(n, np.inf)
+        dh2 = d[:, 0] * d[:, 0] + d[:, 1] * d[:, 1]
+        lh = sum(f.lipschitz for f in feats) * np.sqrt(dh2)
+        curv = sum(f.curvature if f.curvature is not None else math.inf for f in feats)
+        kf = curv * dh2 * 0.125 if math.isfinite(curv) else np.full(n, np.inf)
+        fine = step / m_sub
+        idx = np.arange(n)
+        b = end.copy()
+        m = max(m_sub, math.ceil(float((b - a).max()) / fine))
+        rounds = 0
+        while idx.size:
+            rounds += 1
+            if rounds > 200:  # a ray running along the terrain: march the rest of it
+                t = self._raycast_march(o[idx] + a[:, None] * d[idx], d[idx], end[idx] - a)
+                out[idx] = a + t
+                break
+            w = b - a
+            T = a[:, None] + w[:, None] * _unit_steps(m)
+            N = self._sum_at(feats, o[idx], d[idx], T)
+            G = g0[idx, None] + g1[idx, None] * T
+            F = G - N
+            # Not cleared if the terrain may rise more than tol above the ray: by the slope
+            # bound, and (smooth terrain) by the curvature bound, f >= chord - K w^2 / 8.
+            wl = (0.5 * w / m * lh[idx])[:, None]
+            bad = np.minimum(G[:, :-1], G[:, 1:]) - 0.5 * (N[:, :-1] + N[:, 1:]) <= wl - tol
+            sag = (kf[idx] * (w / m) ** 2)[:, None]
+            bad &= np.minimum(F[:, :-1], F[:, 1:]) <= sag - tol
+            bad |= F[:, 1:] < 0.0
+            k = np.argmax(bad, axis=1)
+            r = np.arange(idx.size)
+            anyb = bad[r, k]
+            cross = anyb & (F[r, k + 1] < 0.0)
+            if cross.any():
+                c = np.nonzero(cross)[0]
+                kc = k[c]
+                i = idx[c]
+                out[i] = self._refine_terrain(
+                    o[i],
+                    d[i],
+                    g0[i],
+                    g1[i],
+                    feats,
+                    T[c, kc],
+                    T[c, kc + 1],
+                    F[c, kc],
+                    F[c, kc + 1],
+                    tol,
+                )
+            unsure = anyb & ~cross
+            split = unsure & (w / m > tol)
+            # Next windows: the unsure interval, split; else on from the window's end.
+            na = np.where(split, T[r, k], np.where(unsure, T[r, k + 1], b))
+            nb = np.where(split, T[r, k + 1], end[idx])
+            cont = ~cross & (na < nb)
+            idx, a, b, split = idx[cont], na[cont], nb[cont], split[cont]
+            if idx.size:
+                whole = np.where(split, 0.0, b - a)
+                m = max(m_sub, math.ceil(float(whole.max()) / fine))
+        return out
+
+    @staticmethod
+    def _sum_at(feats: list[_Feature], o: FloatArray, d: FloatArray, T: FloatArray) -> FloatArray:
+        """Sum of the features' contributions at o + T d, (n, m) for T (n, m)."""
+        X = o[:, 0:1] + d[:, 0:1] * T
+        Y = o[:, 1:2] + d[:, 1:2] * T
+        N = feats[0].evaluate(X, Y)
+        for f in feats[1:]:
+            N = N + f.evaluate(X, Y)
+        return N
+
+    def _refine_terrain(
+        self,
+        o: FloatArray,
+        d: FloatArray,
+        g0: FloatArray,
+        g1: FloatArray,
+        feats: list[_Feature],
+        lo: FloatArray,
+        hi: FloatArray,
+        flo: FloatArray,
+        fhi: FloatArray,
+        tol: float,
+        m: int = 16,
+    ) -> FloatArray:
+        """The crossing in brackets [lo, hi] (f(lo) >= 0 > f(hi)) to within tol/2.
+
+        Answers the secant root of the bracket once its error is known to be small enough:
+        on smooth terrain every crossing in [lo, hi] lies within K |dh|^2 w^2 / (8 S) of it
+        (K: curvature bound, w: width, S: the secant's slope); else once w <= tol. Each
+        round samples m - 1 evenly spaced points and two either side of the secant root.
+        """
+        curv = 0.0
+        for f in feats:
+            if f.curvature is None:
+                curv = math.inf
+                break
+            curv += f.curvature
+        kf = np.full(lo.size, np.inf)
+        if math.isfinite(curv):
+            kf = curv * (d[:, 0] ** 2 + d[:, 1] ** 2) * 0.125
+        u = _unit_steps(m)[1:-1]
+        delta = tol / 2.2
+        while True:
+            w = hi - lo
+            drop = flo - fhi
+            ts = lo + w * (flo / drop)
+            if float(np.max(kf * w * w * w / drop - 0.5 * tol)) <= 0.0 or float(w.max()) <= tol:
+                return ts
+            T = np.concatenate(
+                [lo[:, None] + w[:, None] * u, (ts - delta)[:, None], (ts + delta)[:, None]],
+                axis=1,
+            )
+            T = np.clip(T, lo[:, None], hi[:, None])
+            F = g0[:, None] + g1[:, None] * T - self._sum_at(feats, o, d, T)
+            ins = F < 0.0
+            r = np.arange(lo.size)
+            kh = np.argmin(np.where(ins, T, np.inf), axis=1)
+            found = ins[r, kh]
+            hi = np.where(found, T[r, kh], hi)
+            fhi = np.where(found, F[r, kh], fhi)
+            cand = np.where(~ins & (hi[:, None] > T), T, -np.inf)
+            kl = np.argmax(cand, axis=1)
+            better = cand[r, kl] > lo
+            lo = np.where(better, T[r, kl], lo)
+            flo = np.where(better, F[r, kl], flo)
+
+    def _raycast_march(
+        self,
+        origins: ArrayLike,
+        directions: ArrayLike,
+        max_range_m: ArrayLike,
+        step_m: float | None = None,
+        tol_m: float = 1e-4,
+    ) -> FloatArray:
+        """Reference ray casting by plain marching: each ray is sampled every step_m
         (default ray_step_m; a feature thinner than that can be missed at a grazing angle)
         in one vectorised height evaluation, then the interval holding the first crossing
-        is subdivided to tol_m. Works for discontinuous surfaces (vertical walls).
-        """
-        o = np.asarray(origins, np.float64).reshape(-1, 3)
-        d = np.asarray(directions, np.float64).reshape(-1, 3)
+        is subdivided to tol_m."""
+        o, d, rng = self._ray_args(origins, directions, max_range_m)
         n = o.shape[0]
-        if d.shape[0] != n:
-            raise ValueError(f"origins and directions differ in length: {n} vs {d.shape[0]}")
-        norm = np.linalg.norm(d, axis=1)
-        if not np.all(norm > 1e-12) or not np.all(np.isfinite(norm)):
-            raise ValueError("ray directions must be finite and non-zero")
-        d = d / norm[:, None]
-        rng = np.broadcast_to(np.asarray(max_range_m, np.float64), (n,))
-        if not np.all(np.isfinite(rng)) or np.any(rng < 0):
-            raise ValueError("max_range_m must be finite and >= 0")
         step = self.ray_step_m if step_m is None else float(step_m)
         if not step > 0:
             raise ValueError(f"step_m must be > 0, got {step}")
@@ -971,6 +1413,70 @@ class World:
 
     def _terrain_distance(self, p: tuple[float, float, float], ub: float) -> float:
         """Distance (m) from p to the terrain's solid if below ub, else some value >= ub."""
+        d = self._terrain_distance_newton(p)
+        if d is not None:
+            return d
+        return self._terrain_distance_raster(p, ub)
+
+    def _terrain_distance_newton(self, p: tuple[float, float, float]) -> float | None:
+        """Exact distance (m) from p to smooth terrain by Newton's method, or None where
+        the minimum is not certainly unique.
+
+        With c = p_z - terrain(p_xy) > 0, the nearest point lies within c of p_xy. There
+        the squared distance phi(q) = |q - p_xy|^2 + (p_z - T(q))^2 (no clamp needed while
+        p_z - T > 0, i.e. L < 1) has Hessian >= 2 (1 - (c + L c) K) I, L and K bounding
+        the terrain's slope and curvature: if positive, phi is strictly convex on that
+        disc and its one stationary point there is the nearest point.
+        """
+        px, py, pz = p
+        feats = []
+        lip = curv = 0.0
+        for f in self._additive:
+            if f.curvature is None:
+                return None
+            feats.append(f)
+            lip += f.lipschitz
+            curv += f.curvature
+        t0 = self.ground_z
+        for f in feats:
+            t0 += f.jet(px, py)[0]
+        c = pz - t0
+        if c <= 0.0:
+            return 0.0
+        if lip >= 0.9 or (c + lip * c) * curv >= 0.9:
+            return None
+        qx, qy = px, py
+        for _ in range(50):
+            t, gx, gy, hxx, hxy, hyy = self.ground_z, 0.0, 0.0, 0.0, 0.0, 0.0
+            for f in feats:
+                j = f.jet(qx, qy)
+                t, gx, gy = t + j[0], gx + j[1], gy + j[2]
+                hxx, hxy, hyy = hxx + j[3], hxy + j[4], hyy + j[5]
+            h = pz - t
+            # Half gradient and half Hessian of phi.
+            ax = qx - px - h * gx
+            ay = qy - py - h * gy
+            mxx = 1.0 + gx * gx - h * hxx
+            mxy = gx * gy - h * hxy
+            myy = 1.0 + gy * gy - h * hyy
+            det = mxx * myy - mxy * mxy
+            sx = (myy * ax - mxy * ay) / det
+            sy = (mxx * ay - mxy * ax) / det
+            qx, qy = qx - sx, qy - sy
+            if abs(sx) + abs(sy) < 1e-10:
+                break
+        else:
+            return None
+        t = self.ground_z
+        for f in feats:
+            t += f.jet(qx, qy)[0]
+        dx, dy, dz = qx - px, qy - py, pz - t
+        if dx * dx + dy * dy > c * c * (1.0 + 1e-9) or dz <= 0.0:
+            return None
+        return math.sqrt(dx * dx + dy * dy + dz * dz)
+
+    def _terrain_distance_raster(self, p: tuple[float, float, float], ub: float) -> float:
+        """`_terrain_distance` by a raster search refined on the analytic terrain."""
         px, py, pz = p
         ras = self._terrain_ras
         cell = ras.cell

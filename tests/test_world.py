@@ -434,3 +434,125 @@ def test_invalid_configs_name_the_field(feature: dict[str, Any], field: str) -> 
 def test_validation_error_is_a_value_error() -> None:
     with pytest.raises(ValidationError):
         WorldConfig.model_validate({"ground_z_m": "low"})
+
+
+# --------------------------------------------------------------------------- fast paths
+
+
+EVERY_FEATURE = (
+    {"type": "gaussian_hill", "center": [4, 2], "height_m": 3, "sigma_m": 2.5},
+    {
+        "type": "gaussian_hill",
+        "center": [-5, -4],
+        "height_m": -1.5,
+        "sigma_xy_m": [3, 1.5],
+        "yaw_deg": 30,
+    },
+    {"type": "plane", "slope_deg": 6, "direction_deg": 120, "point": [1, 1]},
+    {"type": "mesa", "center": [-6, 5], "radius_m": 1.5, "height_m": 5, "side_slope_deg": 70},
+    {"type": "cylinder", "center": [6, -6], "radius_m": 0.6, "height_m": 6},
+    {"type": "box", "center": [0, -8], "size_m": [4, 1.5, 3], "yaw_deg": 25},
+)
+
+
+def random_rays(
+    w: World, n: int, seed: int, span: float = 12.0
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """n seeded rays from 0.2-6 m above the surface, any direction, ranges 0-15 m."""
+    rng = np.random.default_rng(seed)
+    xy = rng.uniform(-span, span, size=(n, 2))
+    z = w.height(xy[:, 0], xy[:, 1]) + rng.uniform(0.2, 6.0, n)
+    o = np.column_stack([xy, z])
+    az = rng.uniform(-math.pi, math.pi, n)
+    el = rng.uniform(-math.pi / 2, math.pi / 2, n)
+    d = np.column_stack([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)])
+    d[:20] = [0.0, 0.0, -1.0]  # straight down, and level along the axes
+    d[20:40] = [1.0, 0.0, 0.0]
+    d[40:60] = [0.0, -1.0, 0.0]
+    o[60:80, 2] -= 7.0  # some start inside
+    return o, d, rng.uniform(0.0, 15.0, n)
+
+
+def assert_same_ranges(fast: np.ndarray, ref: np.ndarray, atol: float = 1e-3) -> None:
+    assert np.array_equal(np.isfinite(fast), np.isfinite(ref))
+    finite = np.isfinite(ref)
+    assert np.max(np.abs(fast[finite] - ref[finite]), initial=0.0) <= atol
+
+
+@pytest.mark.parametrize("seed", [1, 2])
+def test_raycast_matches_the_marching_reference(seed: int, tmp_path: Path) -> None:
+    u = np.linspace(0.0, 1.0, 60)
+    z = 1.2 * np.sin(6.0 * u)[None, :] * np.cos(4.0 * u)[:, None] + 0.5
+    np.save(tmp_path / "map.npy", z)
+    hm = {"type": "heightmap", "file": "map.npy", "resolution_m": 0.2, "origin": [2, -12]}
+    w = World.from_config(WorldConfig.model_validate({"features": [*EVERY_FEATURE, hm]}), tmp_path)
+    o, d, rng = random_rays(w, 1000, seed)
+    ref = w._raycast_march(o, d, rng, step_m=0.005, tol_m=1e-5)
+    assert_same_ranges(w.raycast(o, d, rng), ref)
+    # Coarser scans give the same answers.
+    assert_same_ranges(w.raycast(o, d, rng, step_m=1.0), ref)
+
+
+def test_raycast_solids_only_is_closed_form() -> None:
+    w = world(*EVERY_FEATURE[3:])
+    o, d, rng = random_rays(w, 1000, 3)
+    ref = w._raycast_march(o, d, rng, step_m=0.005, tol_m=1e-6)
+    assert_same_ranges(w.raycast(o, d, rng), ref, atol=1e-4)
+
+
+def test_raycast_grazing_a_hill_top() -> None:
+    # Level rays just above, at and below the top of a hill: the scan's slope bound cannot
+    # clear the intervals near the top, which are searched again finely.
+    w = world({"type": "gaussian_hill", "center": [10, 0], "height_m": 3, "sigma_m": 2})
+    zs = 3.0 + np.array([-0.2, -0.01, -1e-3, 1e-3, 0.01, 0.2])
+    o = np.column_stack([np.zeros_like(zs), np.zeros_like(zs), zs])
+    d = np.tile([1.0, 0.0, 0.0], (zs.size, 1))
+    r = w.raycast(o, d, 20.0)
+    assert_same_ranges(r, w._raycast_march(o, d, 20.0, step_m=1e-3, tol_m=1e-6))
+    # Below the top: 10 - the hill's half width at that height.
+    below = zs < 3.0
+    half = 2.0 * np.sqrt(2.0 * np.log(3.0 / zs[below]))
+    assert np.allclose(r[below], 10.0 - half, atol=1e-4)
+    assert np.all(np.isinf(r[~below]))
+
+
+def test_surface_distance_newton_matches_the_raster_search() -> None:
+    w = world(
+        {"type": "gaussian_hill", "center": [4, 2], "height_m": 3, "sigma_m": 6},
+        {
+            "type": "gaussian_hill",
+            "center": [-5, -4],
+            "height_m": -1,
+            "sigma_xy_m": [6, 3],
+            "yaw_deg": 30,
+        },
+        EVERY_FEATURE[2],
+    )
+    rng = np.random.default_rng(4)
+    for _ in range(300):
+        x, y = rng.uniform(-15, 15, 2)
+        p = (float(x), float(y), float(h(w, x, y) + rng.uniform(0.05, 2.5)))
+        newton = w._terrain_distance_newton(p)
+        assert newton is not None
+        assert newton == pytest.approx(w._terrain_distance_raster(p, math.inf), abs=1e-3)
+
+
+def test_surface_distance_falls_back_where_not_convex() -> None:
+    # High above a narrow hill the distance function is not convex: the raster search.
+    w = world({"type": "gaussian_hill", "center": [0, 0], "height_m": 3, "sigma_m": 1})
+    p = (0.5, 0.0, 9.0)
+    assert w._terrain_distance_newton(p) is None
+    assert w.surface_distance(p) == pytest.approx(
+        brute_distance(w, np.array(p), "surface", radius=6.5, spacing=0.01), abs=0.01
+    )
+
+
+def test_raycast_along_the_terrain_ends() -> None:
+    # A vehicle standing on the ground: level rays run along the terrain, within a hair of it.
+    w = world({"type": "gaussian_hill", "center": [-1, 25.8], "height_m": 3, "sigma_m": 6})
+    o = np.array([24.0, 24.0, h(w, 24.0, 24.0)])
+    a = np.linspace(0.0, 2.0 * math.pi, 16, endpoint=False)
+    d = np.column_stack([np.cos(a), np.sin(a), np.zeros_like(a)])
+    origins = np.tile(o, (a.size, 1))
+    r = w.raycast(origins, d, 12.0)
+    assert_same_ranges(r, w._raycast_march(origins, d, 12.0, step_m=0.01, tol_m=1e-5))
