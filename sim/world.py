@@ -989,13 +989,14 @@ class World:
         scalar. A ray starting below the surface returns 0.
 
         The solid features (cylinder, box, mesa: convex columns) are intersected in closed
-        form. The terrain (ground, planes: affine along a ray, also closed form; hills and
-        height maps) is sampled every step_m at most (default scan_step_m) in one vectorised
-        evaluation; an interval between two samples above the terrain is cleared by a
-        Lipschitz bound of the terrain (its steepest slope), else subdivided, so nothing is
-        skipped however thin (except a sliver across a height map's edge, a step in the
-        terrain). The first crossing is then bracketed to tol_m by secant-guided
-        subdivision. `_raycast_march` is the plain ray-marching reference.
+        form. The terrain (ground, planes: affine along a ray, also closed form; hills) is
+        sampled every step_m at most (default scan_step_m) in one vectorised evaluation; an
+        interval between two samples above the terrain is cleared by a Lipschitz bound of
+        the terrain (its steepest slope), else subdivided, so nothing deeper than tol_m is
+        skipped however thin. The first crossing comes from a parabola through three
+        samples where a bound of its error allows, else from secant-guided subdivision to
+        tol_m. Where a height map is in reach the plain march `_raycast_march` (every
+        ray_step_m) is used instead: it is faster there. It is also the tests' reference.
         """
         o, d, rng = self._ray_args(origins, directions, max_range_m)
         n = o.shape[0]
@@ -1033,6 +1034,10 @@ class World:
                 g1 = g1 - (d[:, 0] * f.gx + d[:, 1] * f.gy)
             elif _intersects(f.cull_bbox, box):
                 nonlinear.append(f)
+        if any(f.curvature is None for f in nonlinear):
+            # Height maps: their Lipschitz bound is loose (the steepest cell anywhere) and
+            # there is no curvature bound, so the plain march is faster.
+            return self._raycast_march(o, d, rng, tol_m=tol_m)
         if not nonlinear:
             with np.errstate(divide="ignore", invalid="ignore"):
                 t = np.where(g0 < 0.0, 0.0, np.where(g1 < 0.0, -g0 / g1, np.inf))

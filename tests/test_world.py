@@ -479,13 +479,14 @@ def assert_same_ranges(fast: np.ndarray, ref: np.ndarray, atol: float = 1e-3) ->
     assert np.max(np.abs(fast[finite] - ref[finite]), initial=0.0) <= atol
 
 
-@pytest.mark.parametrize("seed", [1, 2])
-def test_raycast_matches_the_marching_reference(seed: int, tmp_path: Path) -> None:
+@pytest.mark.parametrize(("seed", "heightmap"), [(1, False), (2, False), (3, True)])
+def test_raycast_matches_the_marching_reference(seed: int, heightmap: bool, tmp_path: Path) -> None:
     u = np.linspace(0.0, 1.0, 60)
     z = 1.2 * np.sin(6.0 * u)[None, :] * np.cos(4.0 * u)[:, None] + 0.5
     np.save(tmp_path / "map.npy", z)
     hm = {"type": "heightmap", "file": "map.npy", "resolution_m": 0.2, "origin": [2, -12]}
-    w = World.from_config(WorldConfig.model_validate({"features": [*EVERY_FEATURE, hm]}), tmp_path)
+    feats = [*EVERY_FEATURE, hm] if heightmap else list(EVERY_FEATURE)
+    w = World.from_config(WorldConfig.model_validate({"features": feats}), tmp_path)
     o, d, rng = random_rays(w, 1000, seed)
     ref = w._raycast_march(o, d, rng, step_m=0.005, tol_m=1e-5)
     assert_same_ranges(w.raycast(o, d, rng), ref)
