@@ -37,6 +37,7 @@ def fuzz_settings(examples: int) -> settings:
         deadline=None,
         suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large],
         database=None,
+        derandomize=True,  # the same inputs on every run: a CI failure can be reproduced
     )
 
 
@@ -78,7 +79,7 @@ def check_datagrams(scale: int) -> ReceivePath:
     for name in ("garbage", "bad_crc", "truncated", "unknown_msgid", "bad_frame"):
         assert c[f"codec.{name}"] > 0, name
     assert c["link.oversized_dropped"] > 0
-    assert c["conn.other_system"] + c["conn.other_component"] > 0
+    assert c.get("conn.other_system", 0) + c.get("conn.other_component", 0) > 0
     assert c.get("conn.handler_errors", 0) == 0
     assert c["codec.parser_errors"] == 0
     assert path.sent_types() <= {"TIMESYNC"}  # answers to TIMESYNC requests, nothing else
