@@ -18,7 +18,6 @@ import pytest
 from tests.reliability_flight import (
     D_MIN_M,
     FAULTS,
-    GPS_RESET_M,
     FlightOutcome,
     fly_fault,
 )
@@ -40,6 +39,9 @@ def check_behaviour(o: FlightOutcome) -> None:
     # survive the median) it may stop short or detour: safe, but not always finished in
     # time (see the sweep in docs/reliability.md). Elsewhere the service must get there.
     wrong_data = ("stuck_range", "stuck_surface", "spikes", "spikes_close")
+    # gps_reset: for the 0.5 s before the position goes stale the planner sees the vehicle
+    # still while its sensors move; next to the pillar it may call itself blocked and back
+    # out (safe, slower): finishing in time is in the sweep, not asserted here.
     if name not in ("reboot", "mode_change", "gps_reset", *wrong_data):
         assert o.reached_goal, f"final distance {o.final_distance_m:.2f} m"
     if name in ("none", "noise", "sensor_dropouts", *wrong_data):
@@ -51,16 +53,12 @@ def check_behaviour(o: FlightOutcome) -> None:
     if name == "gps_glitch":  # rejected as a glitch; never stale long enough to stop
         assert c["input.rejected_position_jump"] >= 10
         assert c.get("input.position_jump_accepted", 0) == 0
-    if name == "gps_reset":  # rejected, stale (stop), accepted after 1 s, planner restarted
+    if name == "gps_reset":  # rejected, stale (stop), accepted after 1 s, plan kept
         assert c["input.position_jump_accepted"] == 1
-        assert c["service.planner_starts"] == 2
+        assert c["service.planner_starts"] == 1
         stop = [x.t for x in engaged if x.verdict == "stop"]
         assert stop and t0 <= stop[0] <= t0 + 0.7 and stop[-1] <= t0 + 2.2  # + resume_after
-        # the goal is fixed on the map: flown to in the shifted estimate, the vehicle ends
-        # |jump| away from it (when it gets there in the time: a replan next to the pillar
-        # can take a detour)
-        if o.final_distance_m < 6.0:
-            assert o.final_distance_m == pytest.approx(math.hypot(*GPS_RESET_M[:2]), abs=0.5)
+        # the planner's frame moved with the jump: the plan, and the goal, stay in the world
     if name == "dup_reorder":
         assert c.get("input.duplicate", 0) + c.get("input.out_of_order", 0) > 0
     if name == "link_cut_3s":  # stop commanding (nothing sent), then resume

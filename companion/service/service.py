@@ -206,7 +206,9 @@ class Service:
         self._finish_handled = False
         self._hold: _Hold | None = None
         self._planner_failed = False
-        self._replan = False
+        self._shift = np.zeros(3)
+        """Sum of the accepted position jumps: planner frame = estimate - shift (ENU m)."""
+        self._last_planner_xd: FloatArray | None = None
         self._configured_at = 0.0
         self._priming = False
         self._auto_busy = False
@@ -412,12 +414,19 @@ class Service:
             self._update_ownership(self.clock.now(), allow_engage=False)
 
     def _position_jumped(self) -> None:
-        """The position estimate jumped for good (estimator reset): a hold position and a
-        plan made in the old estimate would move the vehicle by the jump; start afresh."""
+        """The position estimate jumped for good (estimator reset). The planner keeps its
+        own frame, continuous through the jump (as ArduPilot's position controller shifts
+        its targets on an EKF reset): positions given to it are the estimate minus the
+        jumps so far, its setpoints are sent plus them. A plan, the obstacles it remembers
+        and the route stay where they were in the world; a hold restarts where the vehicle
+        is now."""
+        jump = self.tel.last_jump_enu
+        self._shift = self._shift + jump
         self._hold = None
-        if self.planner is not None:
-            self._replan = True
-            self._say("position jump: replanning", Severity.WARNING)
+        log.warning(
+            "position estimate jumped %s m: the planner's frame moves with it", np.round(jump, 2)
+        )
+        self._say("position jump: plan kept", Severity.WARNING)
 
     def _on_autopilot_heartbeat(self, t_rx: float) -> None:
         last = self._last_hb_rx
@@ -822,10 +831,25 @@ class Service:
                         "route": self.route_source_points,
                     }
                 )
-        self._start_planner(state)
+        self._start_planner(self._to_planner(state))
         return True
 
+    def _to_planner(self, state: VehicleState) -> VehicleState:
+        if not self._shift.any():
+            return state
+        return VehicleState(
+            state.position_enu - self._shift, state.roll_rad, state.pitch_rad, state.yaw_rad
+        )
+
+    def _from_planner(self, result: StepResult) -> StepResult:
+        if not self._shift.any():
+            return result
+        sp = result.setpoint
+        moved = Setpoint(sp.position_enu + self._shift, sp.velocity_enu, sp.yaw_rad, sp.pitch_rad)
+        return StepResult(moved, result.diagnostics)
+
     def _start_planner(self, state: VehicleState) -> None:
+        """A new planner from `state` (in the planner's frame, see `_position_jumped`)."""
         pts = self.route_source_points
         assert pts is not None
         here = state.position_enu[:2]
@@ -836,7 +860,7 @@ class Service:
         if len(remaining) == 0:
             self.planner = None
             self._say("route complete: holding")
-            self._hold = _Hold(state.position_enu.copy(), state.yaw_rad)
+            self._hold = _Hold(state.position_enu + self._shift, state.yaw_rad)
             self.route_finished.set()
             return
         arrival = self.cfg.route.arrival_heading_deg
@@ -859,22 +883,22 @@ class Service:
         self._seg_start = here.copy()
         self._planner_t = None
         self.last_setpoint = None  # X_d starts at the vehicle: nothing to compare on resume
+        self._last_planner_xd = None
         self.counters["planner_starts"] += 1
         log.info("planner started at %s with %d base points", np.round(here, 2), len(remaining))
 
     def _step_planner(self, now: float) -> StepResult | None:
-        state = self._vehicle_state()
-        if state is None:
+        estimate = self._vehicle_state()
+        if estimate is None:
             return None
-        if self._replan and self.planner is not None:
-            self._replan = False
-            log.info("position jump: restarting the planner from the vehicle")
-            self._start_planner(state)
-        elif (
-            self._planner_t is None and self.planner is not None and self.last_setpoint is not None
+        state = self._to_planner(estimate)
+        if (
+            self._planner_t is None
+            and self.planner is not None
+            and self._last_planner_xd is not None
         ):
             # resuming after a hold, stop or release: restart if X_d is far from the vehicle
-            gap = float(np.linalg.norm(self.last_setpoint.position_enu - state.position_enu))
+            gap = float(np.linalg.norm(self._last_planner_xd - state.position_enu))
             if gap > self.cfg.control.restart_distance_m:
                 log.info("X_d %.1f m from the vehicle: restarting the planner here", gap)
                 self._start_planner(state)
@@ -896,6 +920,8 @@ class Service:
                 log.exception("planner step failed; holding")
             self._say("planner error: holding", Severity.CRITICAL)
             return None
+        self._last_planner_xd = np.array(result.setpoint.position_enu, dtype=np.float64)
+        result = self._from_planner(result)
         self.last_result = result
         d = result.diagnostics
         for e in d.events:

@@ -163,6 +163,9 @@ class Telemetry:
         self.jump_accept_s = jump_accept_s
         self.max_jump_m = max_jump_m
         self.jumps_accepted = 0
+        self.last_jump_enu = np.zeros(3)
+        """The last accepted jump: the position minus where the reported velocity put it."""
+        self._residual_ned = np.zeros(3)
         """Position jumps accepted because they persisted (estimator resets): the position
         the loop works in has moved, so plans and holds made before it are void."""
         self.counters: Counter[str] = Counter()
@@ -269,6 +272,8 @@ class Telemetry:
                 self._last_boot_ms["GLOBAL_POSITION_INT"] = last.time_boot_ms
                 return self._reject("position_jump")
             self._count("position_jump_accepted", logging.WARNING)
+            n, e, d = (float(v) for v in self._residual_ned)
+            self.last_jump_enu = np.array([e, n, -d])
             self.jumps_accepted += 1
             log.warning(
                 "position jump of %.1f m persisted %.1f s: accepted (estimator reset?)",
@@ -293,12 +298,13 @@ class Telemetry:
         predict by more than max_jump_m plus what MAX_ACCEL_MPS2 explains over the gap (the
         gap at the start of a jump episode: rejected samples do not make it grow)."""
         dt = self._dt(last, time_boot_ms, t_rx)
-        if _distance_m(last, lat, lon, alt) > self.max_speed_mps * max(dt, 0.05):
-            return True
         north, east = _north_east_m(last.lat_deg, last.lon_deg, lat, lon)
         moved = np.array([north, east, last.alt_amsl_m - alt])  # NED
         expected = 0.5 * (np.asarray(last.velocity_ned_mps) + np.asarray(vel_ned)) * dt
-        residual = float(np.linalg.norm(moved - expected))
+        self._residual_ned = moved - expected
+        if _distance_m(last, lat, lon, alt) > self.max_speed_mps * max(dt, 0.05):
+            return True
+        residual = float(np.linalg.norm(self._residual_ned))
         dt_accel = dt if self._jump_since is None else min(dt, self._jump_dt)
         return residual > self.max_jump_m + 0.5 * MAX_ACCEL_MPS2 * dt_accel * dt_accel
 
