@@ -50,14 +50,16 @@ def check_behaviour(o: FlightOutcome) -> None:
         held = [x.t for x in o.cycles if x.sp_kind == "hold"]
         assert held and t0 + 0.4 <= held[0] <= t0 + 0.7 and held[-1] <= t0 + 3.2
         assert o.kinds_between(t0 + 0.7, t0 + 2.0) == {"hold"}
-    if name == "gps_glitch":  # rejected as a glitch; never stale long enough to stop
+    if name == "gps_glitch":  # rejected as a glitch: stop while in doubt, then resume
         assert c["input.rejected_position_jump"] >= 10
         assert c.get("input.position_jump_accepted", 0) == 0
+        stop = [x.t for x in engaged if x.verdict == "stop"]
+        assert stop and t0 <= stop[0] <= t0 + 0.1 and stop[-1] <= t0 + 1.6
     if name == "gps_reset":  # rejected, stale (stop), accepted after 1 s, plan kept
         assert c["input.position_jump_accepted"] == 1
         assert c["service.planner_starts"] == 1
         stop = [x.t for x in engaged if x.verdict == "stop"]
-        assert stop and t0 <= stop[0] <= t0 + 0.7 and stop[-1] <= t0 + 2.2  # + resume_after
+        assert stop and t0 <= stop[0] <= t0 + 0.1 and stop[-1] <= t0 + 2.2  # + resume_after
         # the planner's frame moved with the jump: the plan, and the goal, stay in the world
     if name == "dup_reorder":
         assert c.get("input.duplicate", 0) + c.get("input.out_of_order", 0) > 0

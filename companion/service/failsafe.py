@@ -3,8 +3,9 @@
     RUN    all inputs fresh: step the planner and send its setpoint
     HOLD   a required range sensor or the attitude is stale: send a position setpoint at the
            position where the hold began, zero velocity (the planner is not stepped)
-    STOP   the autopilot heartbeat, home or position is missing or stale: send nothing (the
-           autopilot keeps its last position target; its own failsafes take over)
+    STOP   the autopilot heartbeat, home or position is missing or stale, or the position
+           jumped and is being judged: send nothing (the autopilot keeps its last position
+           target; its own failsafes take over)
 
 `Failsafe` adds hysteresis: a hold or stop ends only after the inputs have been good for
 `resume_after_s`, and each change of verdict or reason yields one message for the pilot.
@@ -63,6 +64,8 @@ def assess(
     pos = tel.position
     if pos is None or now - pos.t_rx > limits.position_max_age_s:
         return Assessment(Verdict.STOP, "position stale")
+    if tel.position_in_doubt:
+        return Assessment(Verdict.STOP, "position jump")
     att = tel.attitude
     if att is None or now - att.t_rx > limits.attitude_max_age_s:
         return Assessment(Verdict.HOLD, "attitude stale")

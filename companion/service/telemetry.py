@@ -166,6 +166,7 @@ class Telemetry:
         self.last_jump_enu = np.zeros(3)
         """The last accepted jump: the position minus where the reported velocity put it."""
         self._residual_ned = np.zeros(3)
+        self._jump_ned = np.zeros(3)
         """Position jumps accepted because they persisted (estimator resets): the position
         the loop works in has moved, so plans and holds made before it are void."""
         self.counters: Counter[str] = Counter()
@@ -268,11 +269,13 @@ class Telemetry:
             if self._jump_since is None:
                 self._jump_since = t_rx
                 self._jump_dt = max(self._dt(last, msg.time_boot_ms, t_rx), 0.05)
+                # measured on its first sample, where the velocity prediction is best
+                self._jump_ned = self._residual_ned.copy()
             if t_rx - self._jump_since < self.jump_accept_s:
                 self._last_boot_ms["GLOBAL_POSITION_INT"] = last.time_boot_ms
                 return self._reject("position_jump")
             self._count("position_jump_accepted", logging.WARNING)
-            n, e, d = (float(v) for v in self._residual_ned)
+            n, e, d = (float(v) for v in self._jump_ned)
             self.last_jump_enu = np.array([e, n, -d])
             self.jumps_accepted += 1
             log.warning(
@@ -398,6 +401,12 @@ class Telemetry:
         return RangeReading(median, reading.time_boot_ms, reading.t_rx)
 
     # -- queries ----------------------------------------------------------------------------
+
+    @property
+    def position_in_doubt(self) -> bool:
+        """A position jump is being judged (glitch or estimator reset): until it is, the
+        autopilot may already read targets in a frame the loop does not know."""
+        return self._jump_since is not None
 
     def range_vector(
         self, now: float, max_age_s: float, out: FloatArray | None = None
