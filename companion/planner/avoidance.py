@@ -51,9 +51,13 @@ UNSEEN_BERTH_M = 2.0
 has not been seen yet); dropped when it does not fit."""
 """An obstacle point this close to the current line means the obstacle sits across it."""
 TRANSITION_FACTORS = (1.0, 1.5, 2.5, 4.0)
+KEEP_ROUTE_FACTOR = 2.0
 """Lengths, in multiples of the shortest S-curve the turn radius allows, over which a
 candidate moves to its offset."""
 _SAMPLE_SPACING_M = 0.2
+ESCAPE_SLOPE = 0.3
+"""A correction that starts closer than D_min (new points appeared beside the vehicle) must
+gain at least this much clearance per metre along it until it is out."""
 
 
 @dataclass(frozen=True, slots=True)
@@ -68,28 +72,41 @@ class Detour:
     cost: float
 
 
-def min_distance(samples_xy: FloatArray, obstacles_xy: FloatArray) -> FloatArray:
-    """Distance from each sample (n, 2) to the nearest obstacle point (k, 2); inf if none."""
+def min_distance(
+    samples_xy: FloatArray, obstacles_xy: FloatArray, inflation_m: FloatArray | None = None
+) -> FloatArray:
+    """Distance from each sample (n, 2) to the nearest obstacle point (k, 2), less that
+    point's inflation (k,) metres when given (the distance to its inflated disc); inf if
+    there are no points."""
     if len(obstacles_xy) == 0:
         return np.full(len(samples_xy), np.inf)
     # Per coordinate, not a sum over a length-2 axis: numpy reduces short axes slowly.
     dx = samples_xy[:, 0, None] - obstacles_xy[None, :, 0]
     dy = samples_xy[:, 1, None] - obstacles_xy[None, :, 1]
-    return np.asarray(np.sqrt((dx * dx + dy * dy).min(axis=1)), dtype=np.float64)
+    d = np.sqrt(dx * dx + dy * dy)
+    if inflation_m is not None:
+        d = d - inflation_m[None, :]
+    return np.asarray(d.min(axis=1), dtype=np.float64)
 
 
 def min_distance_within(
-    samples_xy: FloatArray, obstacles_xy: FloatArray, cutoff_m: float
+    samples_xy: FloatArray,
+    obstacles_xy: FloatArray,
+    cutoff_m: float,
+    inflation_m: FloatArray | None = None,
 ) -> FloatArray:
     """`min_distance` where it is below cutoff_m (the same numbers); elsewhere some value
     >= cutoff_m, possibly inf. Obstacles outside the samples' bounding box grown by
-    cutoff_m cannot come closer than that and are left out before the (n, k) distances."""
+    cutoff_m (plus the largest inflation) cannot come closer than that and are left out
+    before the (n, k) distances."""
     if len(samples_xy) == 0 or len(obstacles_xy) == 0:
         return np.full(len(samples_xy), np.inf)
-    lo = samples_xy.min(axis=0) - cutoff_m
-    hi = samples_xy.max(axis=0) + cutoff_m
+    grow = cutoff_m + (float(inflation_m.max()) if inflation_m is not None else 0.0)
+    lo = samples_xy.min(axis=0) - grow
+    hi = samples_xy.max(axis=0) + grow
     inside = np.all((obstacles_xy >= lo) & (obstacles_xy <= hi), axis=1)
-    return min_distance(samples_xy, obstacles_xy[inside])
+    infl = inflation_m[inside] if inflation_m is not None else None
+    return min_distance(samples_xy, obstacles_xy[inside], infl)
 
 
 def sample_segments(segments: list[CubicBezier]) -> FloatArray:
@@ -119,12 +136,16 @@ def max_abs_curvature(segments: list[CubicBezier]) -> float:
 
 
 def free_intervals(
-    lateral: FloatArray, half_width_m: float, limit_m: float = MAX_LATERAL_OFFSET_M
+    lateral: FloatArray,
+    half_width_m: float | FloatArray,
+    limit_m: float = MAX_LATERAL_OFFSET_M,
 ) -> list[tuple[float, float]]:
-    """Gaps between the bands [l - half_width, l + half_width] within [-limit, limit]."""
+    """Gaps between the bands [l - half_width, l + half_width] within [-limit, limit];
+    half_width is one number or one per point."""
     if len(lateral) == 0:
         return [(-limit_m, limit_m)]
-    bands = sorted(zip(lateral - half_width_m, lateral + half_width_m, strict=True))
+    half = np.broadcast_to(np.asarray(half_width_m, dtype=np.float64), lateral.shape)
+    bands = sorted(zip((lateral - half).tolist(), (lateral + half).tolist(), strict=True))
     gaps: list[tuple[float, float]] = []
     cursor = -limit_m
     for lo, hi in bands:
@@ -155,7 +176,8 @@ class AvoidanceRequest:
     the current path comes too close to. obstacles_xy: all remembered points nearby.
     committed_side: side already chosen for this obstacle (hysteresis). free_left_m /
     free_right_m: how much free range the side sensors report. avoid_side: a side that was
-    found to be a dead end.
+    found to be a dead end. obstacles_inflation: per point of obstacles_xy, metres to keep
+    beyond D_min + margin (None: 0).
     """
 
     start_xy: FloatArray
@@ -166,6 +188,7 @@ class AvoidanceRequest:
     free_left_m: float = 0.0
     free_right_m: float = 0.0
     avoid_side: Side = Side.NONE
+    obstacles_inflation: FloatArray | None = None
 
 
 def plan_detour(route: Route, request: AvoidanceRequest, params: PlannerParams) -> Detour | None:
@@ -173,6 +196,9 @@ def plan_detour(route: Route, request: AvoidanceRequest, params: PlannerParams) 
     d_m = params.d_min_m + params.clearance_margin_m
     poly = route.polyline()
     obstacles = request.obstacles_xy
+    inflation = request.obstacles_inflation
+    if inflation is None:
+        inflation = np.zeros(len(obstacles))
     if len(request.conflict_xy) == 0:
         return None
     s_obs, l_obs = project(poly, obstacles)
@@ -183,26 +209,32 @@ def plan_detour(route: Route, request: AvoidanceRequest, params: PlannerParams) 
     s_a, s_b = float(s_seed.min()), float(s_seed.max())
     lat_limit = float(np.max(np.abs(l_seed))) + 2.0 * d_m + 2.0
     window = np.zeros(len(s_obs), dtype=bool)
+    # An inflated point reaches e farther along and across the route than the point itself.
+    s_lo, s_hi, l_abs = s_obs - inflation, s_obs + inflation, np.abs(l_obs) + inflation
     for _ in range(20):
-        window = (s_obs >= s_a - 2.0 * d_m) & (s_obs <= s_b + 2.0 * d_m)
-        window &= np.abs(l_obs) <= lat_limit
+        window = (s_hi >= s_a - 2.0 * d_m) & (s_lo <= s_b + 2.0 * d_m)
+        window &= np.abs(l_obs) - inflation <= lat_limit
         if not window.any():
             break
-        new_a, new_b = float(s_obs[window].min()), float(s_obs[window].max())
-        new_limit = max(lat_limit, float(np.max(np.abs(l_obs[window]))) + 2.0 * d_m)
+        new_a, new_b = float(s_lo[window].min()), float(s_hi[window].max())
+        new_limit = max(lat_limit, float(np.max(l_abs[window])) + 2.0 * d_m)
         if new_a == s_a and new_b == s_b and new_limit == lat_limit:
             break
         s_a, s_b, lat_limit = min(s_a, new_a), max(s_b, new_b), new_limit
-    l_window = l_obs[window] if window.any() else l_seed
+    if window.any():
+        l_window, half_window = l_obs[window], d_m + 0.05 + inflation[window]
+    else:
+        l_window, half_window = l_seed, np.full(len(l_seed), d_m + 0.05)
 
-    start_clear = float(min_distance(request.start_xy[None, :], obstacles)[0])
+    start_clear = float(min_distance(request.start_xy[None, :], obstacles, inflation)[0])
     required = min(d_m - 0.05, max(params.d_min_m, start_clear - 0.05))
+    start_floor = start_clear - 0.05 if start_clear - 0.05 < required else None
     seed_mid = float(np.median(l_seed))
     across = float(np.min(np.abs(l_seed - l0))) < ACROSS_M
     mode = PathMode.AROUND if across else PathMode.SHIFT
 
     candidates: list[tuple[float, float, Side]] = []
-    for lo, hi in free_intervals(l_window, d_m + 0.05):
+    for lo, hi in free_intervals(l_window, half_window):
         offsets: list[tuple[float, float]] = []  # (w, cost adjustment)
         for target in (l0, 0.0):
             w = min(max(target, lo + 1e-3), hi - 1e-3)
@@ -227,8 +259,11 @@ def plan_detour(route: Route, request: AvoidanceRequest, params: PlannerParams) 
     candidates.sort(key=lambda c: (c[0], c[1]))
 
     tails: dict[float, list[CubicBezier]] = {}  # the route after each rejoin point tried
-    for cost, w, side, transition in _with_transitions(candidates, l0, s0, s_a, d_m, params):
-        built = _build(route, poly, request, params, s0, transition, s_b, w, d_m, tails)
+    on_route = abs(l0) < 0.05 and request.start_dir is not None
+    for cost, w, side, leave, transition in _with_transitions(
+        candidates, l0, s0, s_a, d_m, params, on_route
+    ):
+        built = _build(route, poly, request, params, s0, leave, transition, s_b, w, d_m, tails)
         if built is None:
             continue
         detour_segments, rejoin_s, tail = built
@@ -241,7 +276,9 @@ def plan_detour(route: Route, request: AvoidanceRequest, params: PlannerParams) 
                 break
             tail_check.append(seg)
             tail_len += seg.length
-        if _comes_closer([*detour_segments, *tail_check], obstacles, required):
+        if _comes_closer(
+            [*detour_segments, *tail_check], obstacles, required, inflation, start_floor
+        ):
             continue
         extra = sum(seg.length for seg in detour_segments) - (rejoin_s - s0)
         return Detour(
@@ -255,15 +292,32 @@ def plan_detour(route: Route, request: AvoidanceRequest, params: PlannerParams) 
     return None
 
 
-def _comes_closer(segments: list[CubicBezier], obstacles_xy: FloatArray, limit_m: float) -> bool:
+def _comes_closer(
+    segments: list[CubicBezier],
+    obstacles_xy: FloatArray,
+    limit_m: float,
+    inflation_m: FloatArray | None = None,
+    start_m: float | None = None,
+) -> bool:
     """True if a sample of the segments (spaced as `sample_segments` spaces them) is closer
-    than limit_m to an obstacle point. Segment by segment, stopping at the first that is:
-    most rejected candidates fail early, and a segment's bounding box leaves out most
-    points."""
+    than limit_m to an obstacle point's inflated disc. A path that starts closer (start_m,
+    below limit_m) must move out: at a sample s metres along, the limit is
+    min(limit_m, start_m + ESCAPE_SLOPE * s). Segment by segment, stopping at the first
+    that fails: most rejected candidates fail early, and a segment's bounding box leaves out
+    most points."""
+    along = 0.0
     for seg in segments:
         samples = sample_segments([seg])
-        if float(min_distance_within(samples, obstacles_xy, limit_m).min()) < limit_m:
-            return True
+        near = min_distance_within(samples, obstacles_xy, limit_m, inflation_m)
+        if start_m is None or start_m >= limit_m or along > (limit_m - start_m) / ESCAPE_SLOPE:
+            if float(near.min()) < limit_m:
+                return True
+        else:
+            step = np.hypot(*np.diff(samples, axis=0).T)
+            s = along + np.concatenate([[0.0], np.cumsum(step)])
+            if np.any(near < np.minimum(limit_m, start_m + ESCAPE_SLOPE * s)):
+                return True
+        along += seg.length
     return False
 
 
@@ -274,11 +328,15 @@ def _with_transitions(
     s_a: float,
     d_m: float,
     params: PlannerParams,
-) -> list[tuple[float, float, Side, float]]:
+    on_route: bool,
+) -> list[tuple[float, float, Side, float | None, float]]:
     """Each candidate offset with the route positions at which it may reach that offset:
     the window's start (s_a - D_m) when that is ahead, else a few lengths ahead of here.
-    Later transitions cost a little more (they stay longer on the old line)."""
-    out = []
+    Later transitions cost a little more (they stay longer on the old line). A vehicle on
+    the route first tries to stay on it until KEEP_ROUTE_FACTOR S-curve lengths before
+    the offset is reached (the `leave` position; None: leave now): an obstacle seen from
+    afar does not bend the path over terrain long before it."""
+    out: list[tuple[float, float, Side, float | None, float]] = []
     for cost, w, side in candidates:
         # A cubic S-curve shifting sideways by c over a length L curves at about 6 c / L^2.
         shortest = max(1.0, 1.1 * math.sqrt(6.0 * abs(w - l0) * params.min_turn_radius_m))
@@ -289,7 +347,10 @@ def _with_transitions(
         options += [s0 + factor * shortest for factor in TRANSITION_FACTORS]
         for i, at in enumerate(options):
             if at > s0 + 0.5:
-                out.append((cost + 0.1 * i, w, side, at))
+                leave = at - KEEP_ROUTE_FACTOR * shortest
+                if on_route and i < 3 and leave > s0 + 1.0:
+                    out.append((cost + 0.1 * i - 0.05, w, side, leave, at))
+                out.append((cost + 0.1 * i, w, side, None, at))
     out.sort(key=lambda c: (c[0], c[1]))
     return out
 
@@ -300,6 +361,7 @@ def _build(
     request: AvoidanceRequest,
     params: PlannerParams,
     s0: float,
+    leave: float | None,
     hold_start: float,
     s_b: float,
     w: float,
@@ -323,6 +385,9 @@ def _build(
     if rejoin_s <= hold_end + 0.5:
         return None
     via: list[tuple[FloatArray, FloatArray]] = []
+    if leave is not None:
+        p, t, _ = _route_frame(poly, leave)
+        via.append((p, t))
     if hold_start > s0 + 0.5:
         p, t, n = _route_frame(poly, hold_start)
         via.append((p + w * n, t))

@@ -6,7 +6,7 @@ import numpy as np
 
 from companion.planner.params import PlannerParams
 from companion.planner.sensors import Group
-from companion.planner.types import BoolArray, Decision, FloatArray
+from companion.planner.types import BoolArray, Decision, FloatArray, IntArray
 
 
 def steepness(
@@ -34,3 +34,35 @@ def thresholds(groups: tuple[Group, ...], params: PlannerParams) -> FloatArray:
 def decide(phi_star: FloatArray, threshold: FloatArray) -> Decision:
     """Eq. (7) decision: horizontal if any phi_i* exceeds its threshold, else vertical."""
     return Decision.HORIZONTAL if (phi_star > threshold).any() else Decision.VERTICAL
+
+
+def chord_steepness(points: FloatArray, min_separation_m: float) -> tuple[FloatArray, IntArray]:
+    """The steepest chord from each point down to another, and which one: the project's
+    complement to eq. (6).
+
+    points: (n, 3) world ENU, every surface point measured this cycle (obstacle and surface
+    sensors, the held ground points). For each point i: max over the points k lower than i
+    and at least min_separation_m away horizontally of arctan((z_i - z_k) / |xy_i - xy_k|),
+    radians, and that k; 0 and -1 where there is none.
+
+    Why: on a height field the slope of a chord between two surface points is the slope of
+    the surface at some point between them (mean value theorem), so the steepest chord is a
+    lower bound on how steep the surface is there, never more. Eq. (6) measures one chord,
+    from the obstacle point to its group's ground point; seen from afar at a slant, that
+    chord is far shallower than the flank it ends on (a 50 degree mesa read as climbable).
+    Two rays that hit the same flank measure the flank itself.
+    """
+    n = len(points)
+    if n < 2:
+        return np.zeros(n), np.full(n, -1, dtype=np.intp)
+    dz = points[:, None, 2] - points[None, :, 2]
+    dx = points[:, None, 0] - points[None, :, 0]
+    dy = points[:, None, 1] - points[None, :, 1]
+    h = np.sqrt(dx * dx + dy * dy)
+    usable = (dz > 0.0) & (h >= min_separation_m)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        slope = np.where(usable, np.arctan2(dz, h), -1.0)
+    partner = np.argmax(slope, axis=1).astype(np.intp)
+    best = slope[np.arange(n), partner]
+    found = best >= 0.0
+    return np.where(found, best, 0.0), np.where(found, partner, -1).astype(np.intp)

@@ -5,6 +5,10 @@ a wall seen for a minute costs as much as a wall seen once. Points farther than 
 from the vehicle are forgotten, and the oldest go first when `max_points` is reached.
 Deterministic: "age" is the planner's cycle count, never a clock.
 
+Each point carries an inflation (metres, >= 0): how much farther than D_min + margin the
+path must stay from it horizontally, because the solid it lies on slopes towards the vehicle
+below it (see `planner._inflation`). A re-observed cell takes the newest inflation.
+
 Storage: the points live in rows ("slots") of one preallocated array; a dict maps each grid
 cell to its slot and keeps the cells oldest first. Adding or replacing a point writes one
 row, and the (k, 2) array of points is gathered from the slots in one step when asked for.
@@ -33,8 +37,10 @@ class ObstacleMemory:
         self._cells: dict[tuple[int, int], int] = {}  # grid cell -> slot, oldest first
         self._xyz = np.empty((_INITIAL_SLOTS, 3))
         self._cycle = np.zeros(_INITIAL_SLOTS, dtype=np.int64)
+        self._inflation = np.zeros(_INITIAL_SLOTS)
         self._free: list[int] = list(range(_INITIAL_SLOTS - 1, -1, -1))
         self._xy: FloatArray | None = None
+        self._infl: FloatArray | None = None
 
     def __len__(self) -> int:
         return len(self._cells)
@@ -45,17 +51,25 @@ class ObstacleMemory:
             old = len(self._xyz)
             self._xyz = np.concatenate([self._xyz, np.empty((old, 3))])
             self._cycle = np.concatenate([self._cycle, np.zeros(old, dtype=np.int64)])
+            self._inflation = np.concatenate([self._inflation, np.zeros(old)])
             self._free = list(range(2 * old - 1, old - 1, -1))
         return self._free.pop()
 
-    def add(self, points_enu: FloatArray, cycle: int) -> int:
-        """Store points (k, 3); returns how many cells were new."""
+    def add(self, points_enu: FloatArray, cycle: int, inflation_m: FloatArray | None = None) -> int:
+        """Store points (k, 3) with their inflation (k,) metres (default 0); returns how many
+        cells were new."""
         new = 0
         inv = 1.0 / self.cell_m
         cells = self._cells
-        for x, y, z in np.asarray(points_enu, dtype=np.float64).reshape(-1, 3).tolist():
+        pts = np.asarray(points_enu, dtype=np.float64).reshape(-1, 3)
+        if inflation_m is None:
+            inflation = [0.0] * len(pts)
+        else:
+            inflation = np.asarray(inflation_m, dtype=np.float64).reshape(-1).tolist()
+        for (x, y, z), e in zip(pts.tolist(), inflation, strict=True):
             if not (math.isfinite(x) and math.isfinite(y) and math.isfinite(z)):
                 continue
+            e = e if math.isfinite(e) and e > 0.0 else 0.0
             key = (math.floor(x * inv), math.floor(y * inv))
             slot = cells.pop(key, None)  # re-inserted below, so dict order stays oldest-first
             if slot is None:
@@ -64,6 +78,7 @@ class ObstacleMemory:
             cells[key] = slot
             self._xyz[slot] = (x, y, z)
             self._cycle[slot] = cycle
+            self._inflation[slot] = e
         while len(cells) > self.max_points:
             self._free.append(cells.pop(next(iter(cells))))
         if len(points_enu):
@@ -72,6 +87,7 @@ class ObstacleMemory:
 
     def _changed(self) -> None:
         self._xy = None
+        self._infl = None
         self.version += 1
 
     def forget_far(self, position_xy: FloatArray) -> int:
@@ -95,11 +111,26 @@ class ObstacleMemory:
             self._xy = self._xyz[slots, :2]
         return self._xy
 
+    def inflation_m(self) -> FloatArray:
+        """Inflation of each remembered point, (k,) metres, aligned with `points_xy`."""
+        if self._infl is None:
+            slots = np.fromiter(self._cells.values(), dtype=np.intp, count=len(self._cells))
+            self._infl = self._inflation[slots]
+        return self._infl
+
     def near(self, position_xy: FloatArray, radius_m: float) -> FloatArray:
         """Remembered points within radius_m of position_xy, (k, 2)."""
+        return self.near_with_inflation(position_xy, radius_m)[0]
+
+    def near_with_inflation(
+        self, position_xy: FloatArray, radius_m: float
+    ) -> tuple[FloatArray, FloatArray]:
+        """Remembered points within radius_m of position_xy, (k, 2), and their inflation."""
         xy = self.points_xy()
         if len(xy) == 0:
-            return xy
+            return xy, np.zeros(0)
         d = np.hypot(xy[:, 0] - position_xy[0], xy[:, 1] - position_xy[1])
-        out: FloatArray = xy[d <= radius_m]
-        return out
+        keep = d <= radius_m
+        out: FloatArray = xy[keep]
+        infl: FloatArray = self.inflation_m()[keep]
+        return out, infl

@@ -35,7 +35,7 @@ from companion.planner.avoidance import (
     min_distance_within,
     plan_detour,
 )
-from companion.planner.decision import decide, steepness, thresholds
+from companion.planner.decision import chord_steepness, decide, steepness, thresholds
 from companion.planner.frames import wrap_pi
 from companion.planner.memory import ObstacleMemory
 from companion.planner.params import ArcMethod, PlannerParams
@@ -63,6 +63,11 @@ _YAW_RATE_AT_REST_RAD_S = 0.8
 _YAW_ALIGNED_RAD = 0.1
 _STOPPED_MPS = 1e-3
 _GROUND_HOLD_RANGE = 4.0
+_MIN_CHORD_M = 0.5
+_LOCAL_CHORD_M = 2.5
+"""Longest horizontal chord whose slope is taken as the slope at its upper end."""
+"""Shortest horizontal chord whose slope counts (`chord_steepness`): over shorter ones a
+few centimetres of range noise would read as a steep slope."""
 
 
 @dataclass(frozen=True, slots=True)
@@ -148,6 +153,14 @@ class Planner:
         self.route = route
         self._obstacle_groups = sensors.obstacle_groups
         self._thresholds = thresholds(self._obstacle_groups, params)
+        # Threshold of every row of the table: eq. (7) for obstacle sensors; for surface
+        # sensors phi_max fore and aft (the climb) and eq. (7)'s side value left and right.
+        row_threshold = np.full(len(sensors), params.phi_max_rad)
+        row_threshold[sensors.obstacle_index] = self._thresholds
+        for group in (Group.SURFACE_LEFT, Group.SURFACE_RIGHT):
+            if group in sensors.surface_index:
+                row_threshold[sensors.surface_index[group]] = params.side_threshold_rad
+        self._row_threshold = row_threshold
         # The rows of `_ground_points` when every surface sensor reads (the usual case).
         all_surface = sensors.surface_index
         self._ground_rows_all = np.array(
@@ -249,16 +262,17 @@ class Planner:
             except ValueError:
                 surface_valid = False
 
-        # Eqs (6)-(7): steepness of each obstacle reading against its group's ground point.
+        # Eqs (6)-(7): steepness of each obstacle reading against its group's ground point,
+        # raised to the steepest chord measured this cycle (`chord_steepness`); steep
+        # points, surface readings included, enter the obstacle memory.
         obs = self.sensors.obstacle_index
         detected = valid[obs]
-        obstacle_points = points[obs]
         ground = self._ground_points(points, surface, state)
-        phi_star = steepness(obstacle_points, ground, detected)
+        phi_star = steepness(points[obs], ground, detected)
+        steep_xyz, steep_inflation = self._steep_points(points, valid, ground, phi_star)
         decision = decide(phi_star, self._thresholds)
-        steep = detected & (phi_star > self._thresholds)
-        if steep.any():
-            self._memory.add(obstacle_points[steep], self._cycle)
+        if len(steep_xyz):
+            self._memory.add(steep_xyz, self._cycle, steep_inflation)
         self._memory.forget_far(state.position_enu[:2])
         min_range = float(ranges[obs][detected].min()) if detected.any() else 0.0
 
@@ -389,6 +403,66 @@ class Planner:
                 out[missing] = state.position_enu - np.array([0.0, 0.0, self._h_d])
         return out
 
+    def _steep_points(
+        self, points: FloatArray, valid: BoolArray, ground: FloatArray, phi_star: FloatArray
+    ) -> tuple[FloatArray, FloatArray]:
+        """The points measured this cycle that are too steep to climb, (k, 3), and the
+        inflation of each, (k,) metres. phi_star (eq. 6, per obstacle sensor) is raised in
+        place to the steepest chord through each obstacle reading.
+
+        Inflation: the solid below a steep point X_i slopes towards the vehicle at about
+        theta, its steepest chord (a lower bound on the true slope, so the estimate errs
+        wide), when that chord is short enough (<= _LOCAL_CHORD_M) to say something about
+        the surface at X_i; a long chord (to a ground point far in front) does not, and
+        leaves the point as it was seen. Two things follow from theta:
+        - keeping D_min from an inclined flank takes D_min / sin(theta) horizontally; the
+          planner keeps D_min + margin, half of which may go to the slope (the other half
+          covers the surface between rays);
+        - the vehicle passes at the height of the ground near X_i, z_g (the lower of the
+          chord's other end and the group's ground point), plus H_d, where the flank reaches
+          (z_i - z_g - H_d) / tan(theta) nearer than X_i (never past the chord's other end).
+        e = max(0, D_min / sin(theta) - D_min - margin/2) + min(h, max(0, z_i - z_g - H_d)
+        / tan(theta)), h the chord's length. The lower part of a flank is measured, not only
+        extrapolated: the surface sensors hit it as the vehicle comes near, and their steep
+        points enter the memory too.
+        """
+        params = self.params
+        rows = np.flatnonzero(valid)
+        held = [
+            p
+            for g, p in self._last_ground.items()
+            if self.sensors.surface_index.get(g) is None or not valid[self.sensors.surface_index[g]]
+        ]
+        cloud = points[rows] if not held else np.vstack([points[rows], *held])
+        phi_pair, partner = chord_steepness(cloud, _MIN_CHORD_M)
+        n = len(self.sensors)
+        phi_row = np.zeros(n)
+        phi_row[rows] = phi_pair[: len(rows)]
+        other = np.full((n, 3), np.nan)  # the chord's other end
+        found = partner[: len(rows)] >= 0
+        other[rows[found]] = cloud[partner[: len(rows)][found]]
+        obs = self.sensors.obstacle_index
+        ground_z = np.full(n, np.inf)
+        ground_z[obs] = ground[:, 2]
+        eq6 = valid[obs] & (phi_star >= phi_row[obs])  # eq. (6) is the steeper chord
+        other[obs[eq6]] = ground[eq6]
+        phi_row[obs] = np.where(valid[obs], np.maximum(phi_star, phi_row[obs]), 0.0)
+        phi_star[:] = phi_row[obs]
+        steep = valid & (phi_row > self._row_threshold)
+        if not steep.any():
+            return np.empty((0, 3)), np.empty(0)
+        xyz, low = points[steep], other[steep]
+        h = np.hypot(xyz[:, 0] - low[:, 0], xyz[:, 1] - low[:, 1])
+        local = h <= _LOCAL_CHORD_M
+        theta = np.where(local, phi_row[steep], 0.5 * math.pi)
+        slack = params.d_min_m + 0.5 * params.clearance_margin_m
+        slope_term = np.maximum(params.d_min_m / np.sin(theta) - slack, 0.0)
+        z_g = np.minimum(low[:, 2], ground_z[steep])
+        rise = np.maximum(xyz[:, 2] - z_g - self._h_d, 0.0)
+        foot_term = np.where(local, np.minimum(h, rise / np.tan(theta)), 0.0)
+        inflation = slope_term + foot_term
+        return xyz, inflation
+
     def _path_heading(self) -> float:
         return self._path.segments[self._segment].heading(self._t)
 
@@ -426,7 +500,10 @@ class Planner:
             clearance = None
             if len(self._memory):
                 clearance = min_distance_within(
-                    points, self._memory.points_xy(), self._clearance_cutoff_m
+                    points,
+                    self._memory.points_xy(),
+                    self._clearance_cutoff_m,
+                    self._memory.inflation_m(),
                 )
             self._look = _LookAhead(
                 samples.s[ahead],
@@ -461,11 +538,11 @@ class Planner:
             return False
         if self._mode is PathMode.RETREAT and not self._blocked:
             return False  # backing out along the covered track: it is known to be free
-        nearby = self._memory.near(here, radius)
+        nearby, nearby_inflation = self._memory.near_with_inflation(here, radius)
         # Points that the conflicting part of the path comes too close to.
         bad = look.points[conflict_samples]
         d_to_bad = np.sqrt(((nearby[:, None, :] - bad[None, :, :]) ** 2).sum(axis=2)).min(axis=1)
-        conflict_xy = nearby[d_to_bad < trigger]
+        conflict_xy = nearby[d_to_bad - nearby_inflation < trigger]
         free_left, free_right = self._free_range(ranges, valid)
         at_rest = self._v <= _STOPPED_MPS
         request = AvoidanceRequest(
@@ -477,6 +554,7 @@ class Planner:
             free_left_m=free_left,
             free_right_m=free_right,
             avoid_side=self._avoid_side,
+            obstacles_inflation=nearby_inflation,
         )
         detour = plan_detour(self.route, request, params)
         if detour is not None:
@@ -524,6 +602,7 @@ class Planner:
                 free_left_m=request.free_left_m,
                 free_right_m=request.free_right_m,
                 avoid_side=failed,
+                obstacles_inflation=request.obstacles_inflation,
             )
             detour = plan_detour(self.route, trial, self.params)
             if detour is None:
@@ -586,9 +665,12 @@ class Planner:
             # Stop before the first place closer than the trigger distance. An accepted
             # correction may start inside that band (new points appeared) while leading out
             # of it; then only places closer than here count, and never closer than D_min.
+            # Inside that band (new points appeared, or a retreat starts next to the
+            # obstacle) a path that leads out of it is free: only places closer than here
+            # count. Never "stop where we are" on a path that moves away.
             limit = params.d_min_m + 0.5 * params.clearance_margin_m
             if not self._blocked:
-                limit = max(min(limit, float(dist[0]) - 0.05), params.d_min_m)
+                limit = min(limit, float(dist[0]) - 0.05)
             too_close = np.flatnonzero(dist < limit)
             if len(too_close):
                 free = float(look.s[too_close[0]] - s_here)
