@@ -1,4 +1,5 @@
-"""The `companion` command: run the service, check a config, simulate or fly a scenario."""
+"""The `companion` command: run the service, check a config, simulate or fly a scenario,
+sweep random worlds."""
 
 from __future__ import annotations
 
@@ -42,6 +43,58 @@ def _parser() -> argparse.ArgumentParser:
     )
     fly.add_argument("--no-plots", action="store_true", help="skip the figures")
 
+    sweep = sub.add_parser(
+        "sweep",
+        help="fly many seeded random worlds (seeds x layouts x vehicles) and summarise",
+        description="Fly seeded random worlds (sim/worldgen) in process, in parallel, and "
+        "write results.csv (row by row), summary.txt, failures.txt and, per failure, its "
+        "scenario file and figures. See docs/simulator.md.",
+    )
+    sweep.add_argument(
+        "--seeds", required=True, help="N, A:B (A..B-1) or a comma list of those, e.g. 0:100"
+    )
+    sweep.add_argument(
+        "--layout",
+        action="append",
+        default=None,
+        help="sensor layout: a name in config/sensors (paper-11, horizontal-7, ring-8) or a "
+        "YAML file; repeat or comma-separate (default: those three)",
+    )
+    sweep.add_argument(
+        "--vehicle",
+        action="append",
+        default=None,
+        help="vehicle model: ideal, multicopter; repeat or comma-separate (default: both)",
+    )
+    sweep.add_argument(
+        "--fault",
+        action="append",
+        default=None,
+        help="sensor fault on every sensor: none, noise, dropout, spikes (default: none)",
+    )
+    sweep.add_argument("--out", type=Path, default=Path("out/sweep"), help="output directory")
+    sweep.add_argument(
+        "--workers", type=int, default=2, help="parallel processes (default 2; 1: in process)"
+    )
+    sweep.add_argument(
+        "--ray",
+        nargs="?",
+        const="local",
+        default=None,
+        metavar="ADDRESS",
+        help="run on Ray: a local instance, or the cluster at ADDRESS (HOST:PORT, "
+        "ray://HOST:PORT or auto); needs the [ray] extra",
+    )
+    sweep.add_argument(
+        "--resume", action="store_true", help="keep DIR/results.csv and skip the runs in it"
+    )
+    sweep.add_argument("--no-figures", action="store_true", help="no figures of failures")
+    sweep.add_argument(
+        "--write-scenarios",
+        action="store_true",
+        help="only write each world as a scenario file in DIR (no flight)",
+    )
+
     report = sub.add_parser("report", help="plots (and metrics) of a flight log")
     report.add_argument("log", type=Path, help="flight log (.jsonl) written by the service")
     report.add_argument("--out", type=Path, required=True, help="output directory")
@@ -69,6 +122,31 @@ def main(argv: Sequence[str] | None = None) -> int:
             try:
                 return simulate(args.scenario, args.out, plots=not args.no_plots)
             except ScenarioError as exc:
+                print(f"error: {exc}", file=sys.stderr)
+                return 2
+        if args.command == "sweep":
+            from sim.sweep import DEFAULT_LAYOUTS, VEHICLES, SweepError, SweepOptions, sweep
+
+            def items(values: list[str] | None, default: tuple[str, ...]) -> tuple[str, ...]:
+                if not values:
+                    return default
+                return tuple(v.strip() for arg in values for v in arg.split(",") if v.strip())
+
+            opts = SweepOptions(
+                seeds=args.seeds,
+                layouts=items(args.layout, DEFAULT_LAYOUTS),
+                vehicles=items(args.vehicle, VEHICLES),
+                faults=items(args.fault, ("none",)),
+                out=args.out,
+                workers=args.workers,
+                ray=args.ray,
+                resume=args.resume,
+                figures=not args.no_figures,
+                write_scenarios=args.write_scenarios,
+            )
+            try:
+                return sweep(opts)
+            except SweepError as exc:
                 print(f"error: {exc}", file=sys.stderr)
                 return 2
         if args.command == "report":

@@ -7,8 +7,9 @@ per cycle (columns in TRACE_COLUMNS); metrics are computed from it by `sim.metri
 from __future__ import annotations
 
 import csv
+import time
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -58,6 +59,8 @@ class RunResult:
     events: list[tuple[float, str]]
     finished: bool
     memory_xy: np.ndarray
+    step_time_s: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    """(cycles,) wall-clock time of each planner.step call, seconds (not deterministic)."""
 
 
 def sense(world: World, sensors: SensorTable, state: VehicleState) -> np.ndarray:
@@ -74,8 +77,13 @@ def run(
     scenario: Scenario,
     world: World,
     progress: Callable[[float, float], None] | None = None,
+    sensor_filter: Callable[[float, np.ndarray], np.ndarray] | None = None,
 ) -> RunResult:
-    """Fly the scenario in process until the goal is reached or duration_s has passed."""
+    """Fly the scenario in process until the goal is reached or duration_s has passed.
+
+    sensor_filter(t_s, true_ranges_m) -> ranges_m: what the planner reads instead of the true
+    ranges (sensor faults); None: the true ranges.
+    """
     params = scenario.params()
     sensors = scenario.sensor_table()
     route = scenario.route_obj()
@@ -87,6 +95,7 @@ def run(
     rows: dict[str, list[float | str]] = {c: [] for c in TRACE_COLUMNS}
     phi_rows: list[np.ndarray] = []
     events: list[tuple[float, str]] = []
+    step_times: list[float] = []
     state = vehicle.state
     prev_xd = np.array(start)
     finished = False
@@ -95,7 +104,11 @@ def run(
     for k in range(steps):
         t = (k + 1) * dt
         ranges = sense(world, sensors, state)
+        if sensor_filter is not None:
+            ranges = sensor_filter(t, ranges)
+        t0 = time.perf_counter()
         result: StepResult = planner.step(state, ranges, dt)
+        step_times.append(time.perf_counter() - t0)
         sp, diag = result.setpoint, result.diagnostics
         state = vehicle.step(sp, dt)
         events.extend((t, e) for e in diag.events)
@@ -148,6 +161,7 @@ def run(
         events=events,
         finished=finished,
         memory_xy=planner.memory_points_xy,
+        step_time_s=np.array(step_times),
     )
 
 
