@@ -12,7 +12,8 @@ below it (see `planner._inflation`). A re-observed cell takes the newest inflati
 Storage: the points live in rows ("slots") of one preallocated array; a dict maps each grid
 cell to its slot and keeps the cells oldest first. Adding or replacing a point writes one
 row, and the (k, 2) array of points is gathered from the slots in one step when asked for.
-`version` changes whenever the stored points do, so callers can cache what they derive.
+`version` changes whenever the stored points do, so callers can cache what they derive;
+`generation` only when a cell is added or dropped (not when a known cell is seen again).
 """
 
 from __future__ import annotations
@@ -34,6 +35,7 @@ class ObstacleMemory:
         self.radius_m = radius_m
         self.max_points = max_points
         self.version = 0
+        self.generation = 0
         self._cells: dict[tuple[int, int], int] = {}  # grid cell -> slot, oldest first
         self._xyz = np.empty((_INITIAL_SLOTS, 3))
         self._cycle = np.zeros(_INITIAL_SLOTS, dtype=np.int64)
@@ -81,6 +83,9 @@ class ObstacleMemory:
             self._inflation[slot] = e
         while len(cells) > self.max_points:
             self._free.append(cells.pop(next(iter(cells))))
+            new += 1
+        if new:
+            self.generation += 1
         if len(points_enu):
             self._changed()
         return new
@@ -102,6 +107,7 @@ class ObstacleMemory:
         for i in np.flatnonzero(far).tolist():
             self._free.append(self._cells.pop(keys[i]))
         self._changed()
+        self.generation += 1
         return int(far.sum())
 
     def points_xy(self) -> FloatArray:

@@ -43,6 +43,7 @@ from companion.planner.path import Path
 from companion.planner.rotations import r_g
 from companion.planner.route import Route
 from companion.planner.sensors import SURFACE_FOR_GROUP, Group, SensorTable, range_points_world
+from companion.planner.sight import layout_speed_limit_mps, wall_flag_distance_m
 from companion.planner.terrain import advance_exact, advance_paper, aim_point, desired_pitch
 from companion.planner.types import (
     BoolArray,
@@ -63,6 +64,7 @@ _YAW_RATE_AT_REST_RAD_S = 0.8
 _YAW_ALIGNED_RAD = 0.1
 _STOPPED_MPS = 1e-3
 _GROUND_HOLD_RANGE = 4.0
+_RETRY_BLOCKED_CYCLES = 20
 _MIN_CHORD_M = 0.5
 _LOCAL_CHORD_M = 2.5
 """Longest horizontal chord whose slope is taken as the slope at its upper end."""
@@ -197,6 +199,10 @@ class Planner:
         self._track: deque[tuple[float, float]] = deque(maxlen=_TRACK_MAX_POINTS)
         self._track.append((float(start[0]), float(start[1])))
         self._last_ground: dict[Group, FloatArray] = {}
+        self._sight_key: tuple[float, float] | None = None
+        self._failed_attempt: tuple[int, int, int, bool] | None = None
+        self._failed_cycle = 0
+        self._v_layout = params.v_d_mps
 
     # --- public controls -------------------------------------------------------------------
     @property
@@ -283,6 +289,7 @@ class Planner:
             decision = Decision.BLOCKED
 
         # Reference speed and eq. (5).
+        self._update_layout_limit(dt_s, events)
         v_target = self._speed_target()
         heading = self._path_heading()
         yaw_error = wrap_pi(heading - self._yaw)
@@ -545,6 +552,22 @@ class Planner:
         conflict_xy = nearby[d_to_bad - nearby_inflation < trigger]
         free_left, free_right = self._free_range(ranges, valid)
         at_rest = self._v <= _STOPPED_MPS
+        # A search that failed is not repeated while nothing it depends on has changed: no
+        # new or dropped memory cell, the reference point within a cell of where it was, the
+        # same state of motion (a blocked cycle is the costly one; bounded, it is retried
+        # at least every _RETRY_BLOCKED_CYCLES cycles).
+        attempt = (
+            self._memory.generation,
+            round(float(here[0]) / self.params.memory_cell_m),
+            round(float(here[1]) / self.params.memory_cell_m),
+            at_rest,
+        )
+        if (
+            self._blocked
+            and attempt == self._failed_attempt
+            and self._cycle - self._failed_cycle < _RETRY_BLOCKED_CYCLES
+        ):
+            return False
         request = AvoidanceRequest(
             start_xy=here.copy(),
             start_dir=None if at_rest else self._path.segments[self._segment].tangent(self._t),
@@ -563,8 +586,9 @@ class Planner:
         if not self._blocked:
             events.append("blocked: no path keeps D_min, stopping")
         self._blocked = True
-        if at_rest:
-            return self._retreat(request, events)
+        if at_rest and self._retreat(request, events):
+            return True
+        self._failed_attempt, self._failed_cycle = attempt, self._cycle
         return False
 
     def _accept(self, detour: Detour, events: list[str], stop_first: bool) -> None:
@@ -640,12 +664,30 @@ class Planner:
                 right += r
         return left, right
 
+    def _update_layout_limit(self, dt_s: float, events: list[str]) -> None:
+        """The speed from which a wall first flagged as steep can still be stopped for
+        (`sight`); recomputed when H_d or the period changes, announced when it binds."""
+        key = (self._h_d, dt_s)
+        if key == self._sight_key:
+            return
+        self._sight_key = key
+        params = self.params
+        flag = wall_flag_distance_m(self.sensors, self._h_d, params.phi_max_rad)
+        trigger = params.d_min_m + 0.5 * params.clearance_margin_m
+        v_max = layout_speed_limit_mps(flag, trigger, params.accel_max_mps2, dt_s)
+        self._v_layout = min(params.v_d_mps, v_max)
+        if self._v_layout < params.v_d_mps:
+            events.append(
+                f"sensor layout flags a wall as steep only {flag:.1f} m ahead: "
+                f"speed limited to {self._v_layout:.2f} m/s (v_d {params.v_d_mps:g})"
+            )
+
     def _speed_target(self) -> float:
         """Reference speed allowed here: v_d, lowered ahead of tight curves (lateral
         acceleration), before points closer than D_min, before stops and the path's end."""
         params = self.params
         a = params.accel_max_mps2
-        v = params.v_d_mps
+        v = self._v_layout
         s_here = self._s
         remaining = self._path.length - s_here
         v = min(v, math.sqrt(2.0 * a * max(remaining, 0.0)))

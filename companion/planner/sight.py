@@ -1,0 +1,70 @@
+"""How far ahead a sensor layout can flag a wall as too steep, and the speed that allows a
+stop within that distance.
+
+A planner can only avoid what it has judged steep. Whether a reading is steep is decided
+from chords between measured points (eq. 6 and `decision.chord_steepness`), and a layout of
+level obstacle sensors with down-tilted surface sensors cannot tell a wall from climbable
+relief until it is close: the chord from the ground point in front (H_d below, g ahead) to
+the level hit on the wall, d ahead, is steeper than phi*_max only when
+d < g + H_d / tan(phi*_max). Whatever the layout, the reference speed must let the vehicle
+stop before it comes within the re-plan distance of a wall first flagged there.
+
+All lengths in metres, angles in radians, body FLU with the vehicle level.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from companion.planner.sensors import Group, Role, SensorTable
+
+_AHEAD_COS = math.cos(math.radians(35.0))
+"""Obstacle sensors within this angle of the nose (horizontally) look where the vehicle goes."""
+
+
+def wall_flag_distance_m(sensors: SensorTable, h_d_m: float, threshold_rad: float) -> float:
+    """Horizontal distance ahead at which the layout first flags a vertical wall across the
+    path as steeper than threshold_rad, flying level at H_d over flat ground. 0 if it never
+    does (no forward-looking obstacle sensor, or no forward surface reading to pair with)."""
+    fwd = sensors.specs[sensors.surface_index[Group.SURFACE_FORWARD]].boresight_flu
+    depression = -math.atan2(float(fwd[2]), math.hypot(float(fwd[0]), float(fwd[1])))
+    if depression <= 0.0:
+        return 0.0
+    ground_ahead = h_d_m / math.tan(depression)  # g: where the forward surface ray lands
+    if ground_ahead >= sensors.specs[sensors.surface_index[Group.SURFACE_FORWARD]].max_range_m:
+        return 0.0
+    tan_thr = math.tan(threshold_rad)
+    best = 0.0
+    for spec in sensors.specs:
+        u = spec.boresight_flu
+        horizontal = math.hypot(float(u[0]), float(u[1]))
+        if spec.role is not Role.OBSTACLE or horizontal < 1e-6:
+            continue
+        if float(u[0]) / horizontal < _AHEAD_COS:
+            continue
+        # A wall d ahead (across the path) is hit at (d, d u1/u0, H_d + d u2/u0) from the
+        # ground point's foot; the chord to the ground point (g, 0, 0) is steep while its
+        # rise exceeds tan(threshold) times its horizontal length.
+        d = np.arange(ground_ahead + 0.05, spec.max_range_m * float(u[0]), 0.05)
+        rise = h_d_m + d * float(u[2]) / float(u[0])
+        run = np.hypot(d - ground_ahead, d * float(u[1]) / float(u[0]))
+        flagged = d[rise > tan_thr * run]
+        if len(flagged):
+            best = max(best, float(flagged.max()))
+    return best
+
+
+def layout_speed_limit_mps(
+    flag_distance_m: float, replan_distance_m: float, accel_mps2: float, dt_s: float
+) -> float:
+    """Largest speed v from which the vehicle stops (braking at accel_mps2, after one
+    cycle of dt_s at v) before it comes within replan_distance_m of a wall first flagged
+    flag_distance_m ahead: v dt + v^2 / (2 a) <= flag - replan. 0 if there is no room."""
+    room = flag_distance_m - replan_distance_m
+    if room <= 0.0:
+        return 0.0
+    a = accel_mps2
+    # v^2 / (2a) + v dt - room = 0
+    return -a * dt_s + math.sqrt((a * dt_s) ** 2 + 2.0 * a * room)
