@@ -13,7 +13,8 @@
 - reached_goal, final_position_error_m, final_heading_error_rad: at the last cycle.
 - collisions: cycles below the surface or inside an obstacle.
 - decisions, replans, max_lateral_deviation_m (per named feature, lateral distance of the
-  flown path from the original route where the route passes that feature).
+  flown path from the original route where the route passes that feature: its footprint,
+  or for a Gaussian hill its core, where it rises more than 5 % of its height).
 """
 
 from __future__ import annotations
@@ -47,7 +48,8 @@ def feature_sides(
     for info in world.features:
         if info.polygon is None:
             continue
-        s_feat, l_feat = project(poly, info.polygon)
+        outline = info.core if info.core is not None else info.polygon
+        s_feat, l_feat = project(poly, outline)
         lo, hi = float(s_feat.min()), float(s_feat.max())
         if hi - lo > 0.9 * route.length:  # a feature the whole route crosses says nothing
             continue

@@ -41,6 +41,9 @@ class Expectation(BaseModel):
     passes: obstacle feature name -> "left" / "right" (side the vehicle passes it on).
     unchanged_over: feature names over which the horizontal path must stay on the route
     (max lateral deviation below max_lateral_deviation_over_m).
+    known_issue: set when the scenario reproduces a defect not fixed yet: the expectations
+    are what must hold once it is; tests/test_scenarios.py reports the scenario as an
+    expected failure with this text (and as XPASS the day it holds).
     """
 
     model_config = ConfigDict(extra="forbid", frozen=True)
@@ -56,6 +59,7 @@ class Expectation(BaseModel):
     max_lateral_deviation_over_m: Finite = 0.05
     min_decisions: dict[str, int] = Field(default_factory=dict)
     collisions: int | None = 0
+    known_issue: str | None = None
 
 
 class Scenario(BaseModel):

@@ -48,6 +48,7 @@ __all__ = [
 OBSTACLE_MIN_RISE_M = 0.01
 """An obstacle feature is solid only where it rises more than this above the terrain (m)."""
 _FOOTPRINT_EPS_M = 0.01  # a gaussian hill's footprint: where it adds more than this
+CORE_FRACTION = 0.05  # a gaussian hill's core: where it adds more than this share of its height
 _CULL_EPS_M = 1e-12  # beyond this contribution a feature is skipped during evaluation
 _TINY = 1e-200  # stands in for a zero direction component in slab tests
 
@@ -167,7 +168,9 @@ class FeatureInfo:
     """Plan-view description of a feature, for plots. Metres, world ENU.
 
     polygon: (n, 2) outline of the footprint (None for an unbounded plane); circle:
-    (x, y, radius) for round footprints, else None.
+    (x, y, radius) for round footprints, else None. core: for relief that fades out (a
+    Gaussian hill), the outline where it rises more than CORE_FRACTION of its height: what
+    "over the hill" means for the metrics (the footprint reaches out to 1 cm of relief).
     """
 
     name: str
@@ -175,6 +178,7 @@ class FeatureInfo:
     obstacle: bool
     polygon: FloatArray | None
     circle: tuple[float, float, float] | None
+    core: FloatArray | None = None
 
 
 def _circle_polygon(cx: float, cy: float, r: float, n: int = 64) -> FloatArray:
@@ -299,7 +303,14 @@ class _GaussianHill(_Feature):
         circle = None
         if self.sx == self.sy:
             circle = (self.cx, self.cy, self.k_fp * self.sx)
-        return FeatureInfo(self.name, self.type, self.obstacle, poly, circle)
+        k_core = math.sqrt(2.0 * math.log(1.0 / CORE_FRACTION))
+        core = np.column_stack(
+            [
+                self.cx + (u * self.c - v * self.s) * k_core / max(self.k_fp, 1e-9),
+                self.cy + (u * self.s + v * self.c) * k_core / max(self.k_fp, 1e-9),
+            ]
+        )
+        return FeatureInfo(self.name, self.type, self.obstacle, poly, circle, core)
 
 
 class _Mesa(_Feature):

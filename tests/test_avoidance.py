@@ -104,3 +104,36 @@ def test_route_base_points_are_kept() -> None:
     poly = detour.path.polyline(0.05)
     for w in route.base_points[1:]:
         assert float(np.min(np.hypot(*(poly.points - w).T))) < 0.05
+
+
+def test_inflated_points_are_passed_farther_out() -> None:
+    """A correction keeps D_m + e from a point inflated by e (a flank inclined under it)."""
+    route = Route(np.array([[0.0, 0.0], [60.0, 0.0]]), 0.0, 0.0)
+    wall = np.array([[30.0, y] for y in np.arange(-6.0, 1.01, 0.25)])
+    infl = np.full(len(wall), 1.0)
+    base = AvoidanceRequest(
+        start_xy=np.array([10.0, 0.0]),
+        start_dir=np.array([1.0, 0.0]),
+        conflict_xy=wall,
+        obstacles_xy=wall,
+    )
+    plain = plan_detour(route, base, PARAMS)
+    wide = plan_detour(
+        route,
+        AvoidanceRequest(
+            start_xy=base.start_xy,
+            start_dir=base.start_dir,
+            conflict_xy=wall,
+            obstacles_xy=wall,
+            obstacles_inflation=infl,
+        ),
+        PARAMS,
+    )
+    assert plain is not None and wide is not None
+    for detour, extra in ((plain, 0.0), (wide, 1.0)):
+        samples = detour.path.polyline().points
+        assert float(min_distance(samples, wall).min()) >= D_M + extra - 0.05 - 1e-9
+    assert wide.offset_m > plain.offset_m
+    assert float(min_distance(np.array([[0.0, 0.0]]), wall, infl)[0]) == (
+        float(min_distance(np.array([[0.0, 0.0]]), wall)[0]) - 1.0
+    )

@@ -5,7 +5,7 @@ import math
 import numpy as np
 import pytest
 
-from companion.planner.decision import decide, steepness, thresholds
+from companion.planner.decision import chord_steepness, decide, steepness, thresholds
 from companion.planner.params import PlannerParams
 from companion.planner.sensors import Group
 from companion.planner.types import Decision
@@ -57,3 +57,34 @@ def test_side_slope_steeper_than_atan_hd_over_dmin_is_horizontal() -> None:
     # The same slope ahead (forward group, threshold phi_max) is climbed.
     fwd = thresholds((Group.FORWARD,), params)
     assert decide(steepness(steeper, ground, np.array([True])), fwd) is Decision.VERTICAL
+
+
+def test_chord_steepness_measures_a_flank_seen_at_a_slant() -> None:
+    """Eq. (6) pairs a level hit on a 50-degree flank with the ground point far in front and
+    reads it as climbable; two hits on the flank itself measure the flank."""
+    flank = math.radians(50.0)
+    ground = np.array([2.0, 0.0, 0.0])  # the forward ground point
+    foot = 6.0  # the flank starts 6 m ahead
+    hits = np.array([[foot + z / math.tan(flank), 0.0, z] for z in (2.0, 3.5)])
+    eq6 = steepness(hits[:1], ground[None, :], np.array([True]))
+    assert eq6[0] < PARAMS.phi_max_rad  # the paper's test alone: climbable
+    phi, partner = chord_steepness(np.vstack([hits, ground]), min_separation_m=0.5)
+    assert phi[1] == pytest.approx(flank)  # the upper hit, against the lower one
+    assert partner[1] == 0
+    assert phi[2] == 0.0 and partner[2] == -1  # nothing lower than the ground point
+
+
+def test_chord_steepness_never_exceeds_the_steepest_slope() -> None:
+    """Mean value theorem: on a height field no chord is steeper than the surface."""
+    rng = np.random.default_rng(7)
+    xy = rng.uniform(-20.0, 20.0, size=(60, 2))
+    z = 3.0 * np.exp(-(xy**2).sum(axis=1) / (2 * 6.0**2))  # a Gaussian hill
+    max_slope = math.atan(3.0 / 6.0 * math.exp(-0.5))
+    phi, _ = chord_steepness(np.column_stack([xy, z]), min_separation_m=0.1)
+    assert float(phi.max()) <= max_slope + 1e-9
+
+
+def test_chord_steepness_ignores_short_chords() -> None:
+    pts = np.array([[0.0, 0.0, 0.0], [0.2, 0.0, 1.0]])
+    phi, partner = chord_steepness(pts, min_separation_m=0.5)
+    assert phi.tolist() == [0.0, 0.0] and partner.tolist() == [-1, -1]

@@ -1,0 +1,50 @@
+"""ObstacleMemory: binning, bounds, inflation and the change counters."""
+
+import numpy as np
+
+from companion.planner.memory import ObstacleMemory
+
+
+def test_one_point_per_cell_newest_wins_with_its_inflation() -> None:
+    mem = ObstacleMemory(cell_m=0.25, radius_m=40.0, max_points=64)
+    assert mem.add(np.array([[1.01, 1.01, 0.0]]), cycle=1, inflation_m=np.array([0.5])) == 1
+    assert mem.add(np.array([[1.2, 1.2, 0.0]]), cycle=2, inflation_m=np.array([0.1])) == 0
+    assert len(mem) == 1
+    assert mem.points_xy().tolist() == [[1.2, 1.2]]
+    assert mem.inflation_m().tolist() == [0.1]
+
+
+def test_inflation_defaults_to_zero_and_is_never_negative_or_nan() -> None:
+    mem = ObstacleMemory(0.25, 40.0, 64)
+    mem.add(np.array([[0.0, 0.0, 0.0], [5.0, 0.0, 0.0]]), 1)
+    mem.add(np.array([[10.0, 0.0, 0.0], [15.0, 0.0, 0.0]]), 2, np.array([-1.0, np.nan]))
+    assert mem.inflation_m().tolist() == [0.0, 0.0, 0.0, 0.0]
+
+
+def test_non_finite_points_are_dropped() -> None:
+    mem = ObstacleMemory(0.25, 40.0, 64)
+    assert mem.add(np.array([[np.nan, 0.0, 0.0], [0.0, np.inf, 0.0]]), 1) == 0
+    assert len(mem) == 0
+
+
+def test_generation_counts_added_and_dropped_cells_only() -> None:
+    mem = ObstacleMemory(0.25, 10.0, 64)
+    mem.add(np.array([[1.0, 1.0, 0.0]]), 1)
+    g, v = mem.generation, mem.version
+    mem.add(np.array([[1.05, 1.05, 0.0]]), 2)  # the same cell seen again
+    assert mem.generation == g and mem.version > v
+    mem.add(np.array([[3.0, 1.0, 0.0]]), 3)
+    assert mem.generation == g + 1
+    assert mem.forget_far(np.array([100.0, 0.0])) == 2
+    assert mem.generation == g + 2 and len(mem) == 0
+
+
+def test_oldest_go_first_beyond_max_points_and_near_filters_by_radius() -> None:
+    mem = ObstacleMemory(0.25, 1000.0, 16)
+    pts = np.array([[float(i), 0.0, 0.0] for i in range(20)])
+    mem.add(pts, 1, np.arange(20, dtype=float))
+    assert len(mem) == 16
+    assert mem.points_xy()[0].tolist() == [4.0, 0.0]  # 0..3 dropped
+    xy, infl = mem.near_with_inflation(np.array([10.0, 0.0]), 2.0)
+    assert xy[:, 0].tolist() == [8.0, 9.0, 10.0, 11.0, 12.0]
+    assert infl.tolist() == [8.0, 9.0, 10.0, 11.0, 12.0]

@@ -1,0 +1,62 @@
+"""sight.py: how far ahead a layout flags a wall, and the speed that can stop within it."""
+
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+
+from companion.planner.sight import layout_speed_limit_mps, wall_flag_distance_m
+from companion.tuning import SensorConfig, sensor_table
+
+CONFIG = Path(__file__).parent.parent / "config/sensors"
+
+
+def table(name: str):  # type: ignore[no-untyped-def]
+    specs = yaml.safe_load((CONFIG / name).read_text())
+    return sensor_table([SensorConfig.model_validate(s) for s in specs])
+
+
+def test_level_sensors_flag_a_wall_only_near() -> None:
+    """Level rays, surface rays 45 degrees down: the chord from the ground point H_d ahead
+    to a wall hit d ahead is steeper than phi_max only for d < H_d + H_d / tan(phi_max)."""
+    d = wall_flag_distance_m(table("horizontal-7.yaml"), 2.0, 0.6)
+    assert d == pytest.approx(2.0 + 2.0 / math.tan(0.6), abs=0.06)
+
+
+def test_upward_sensors_flag_a_wall_far() -> None:
+    """The paper's 30-degree-up ray climbs almost as fast as phi_max: it flags a wall
+    across the path as far as its range reaches."""
+    d = wall_flag_distance_m(table("paper-11.yaml"), 2.0, 0.6)
+    assert d == pytest.approx(12.0 * math.cos(math.radians(30.0)), abs=0.06)
+
+
+def test_speed_limit_stops_within_the_room() -> None:
+    v = layout_speed_limit_mps(4.9, 2.3, 0.5, 0.05)
+    assert v * 0.05 + v * v / (2 * 0.5) == pytest.approx(4.9 - 2.3)
+    assert layout_speed_limit_mps(2.0, 2.3, 0.5, 0.05) == 0.0
+
+
+def test_planner_announces_and_applies_the_layout_limit() -> None:
+    """With v_d above what a level layout can stop for, X_d never exceeds the limit."""
+    from companion.planner import Planner, PlannerParams, Route, VehicleState
+
+    sensors = table("horizontal-7.yaml")
+    params = PlannerParams(v_d_mps=3.0, accel_max_mps2=1.0)
+    route = Route(np.array([[0.0, 0.0], [200.0, 0.0]]), 0.0, 0.0)
+    planner = Planner(params, sensors, route, np.array([0.0, 0.0, 2.0]))
+    ranges = sensors.max_range_m.copy()
+    for i in sensors.surface_index.values():
+        ranges[i] = 2.0 / math.cos(math.pi / 4)
+    state = VehicleState(np.array([0.0, 0.0, 2.0]), 0.0, 0.0, 0.0)
+    events: list[str] = []
+    speeds = []
+    for _ in range(200):
+        res = planner.step(state, ranges, 0.05)
+        events += res.diagnostics.events
+        speeds.append(res.diagnostics.speed_ref_mps)
+    limit = layout_speed_limit_mps(wall_flag_distance_m(sensors, 2.0, 0.6), 2.3, 1.0, 0.05)
+    assert limit < 3.0
+    assert max(speeds) == pytest.approx(limit, rel=1e-6)
+    assert sum("speed limited" in e for e in events) == 1
