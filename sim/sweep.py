@@ -38,6 +38,7 @@ import numpy as np
 import yaml
 
 from companion.tuning import SensorConfig
+from sim.closed_loop import STALL_BOX_M
 from sim.mavlink.config import SensorFaultConfig
 from sim.mavlink.faults import SensorFaults
 from sim.vehicle import VehicleModelConfig
@@ -55,7 +56,7 @@ FAULTS: dict[str, tuple[SensorFaultConfig, ...]] = {
 """Sensor faults applied to every sensor (sim/mavlink's fault model, in process)."""
 
 STALL_WINDOW_S = 60.0
-STALL_DISTANCE_M = 1.0
+"""A run whose vehicle stays within a 1 m box this long (s) is stopped: stalled."""
 
 RECORD_FIELDS = (
     "seed",
@@ -135,12 +136,9 @@ def _stop_reason(reached: bool, finished: bool, t: np.ndarray, x: np.ndarray, y:
         return "goal"
     if finished:
         return "finished off goal"
-    recent = t >= t[-1] - STALL_WINDOW_S
-    if t[-1] >= STALL_WINDOW_S and recent.any():
-        span = math.hypot(float(np.ptp(x[recent])), float(np.ptp(y[recent])))
-        if span < STALL_DISTANCE_M:
-            return "stalled"
-    return "timeout"
+    recent = t >= t[-1] - STALL_WINDOW_S + 1e-9
+    box = max(float(np.ptp(x[recent])), float(np.ptp(y[recent])))
+    return "stalled" if t[-1] >= STALL_WINDOW_S and box < STALL_BOX_M else "timeout"
 
 
 def _pct(a: np.ndarray, q: float) -> float:
@@ -168,7 +166,7 @@ def run_task(task: Task) -> dict[str, Any]:
         filt = None
         if FAULTS[task.fault]:
             filt = _HeldFaults(FAULTS[task.fault], sc.sensor_table(), task.seed)
-        result = run(sc, world, sensor_filter=filt)
+        result = run(sc, world, sensor_filter=filt, stall_stop_s=STALL_WINDOW_S)
         m = metrics_mod.for_run(sc, world, result)
     except Exception as exc:  # a crash is a finding, reported in the record
         rec.update(outcome="error", error=f"{type(exc).__name__}: {exc}"[:300])
