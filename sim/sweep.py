@@ -22,6 +22,7 @@ within 2 D_min.
 from __future__ import annotations
 
 import csv
+import importlib.util
 import math
 import multiprocessing
 import signal
@@ -42,7 +43,7 @@ from sim.closed_loop import STALL_BOX_M
 from sim.mavlink.config import SensorFaultConfig
 from sim.mavlink.faults import SensorFaults
 from sim.vehicle import VehicleModelConfig
-from sim.worldgen import WorldGenConfig, scenario, scenario_yaml
+from sim.worldgen import WorldGenConfig, generate, scenario, scenario_yaml, to_scenario
 
 LAYOUT_DIR = Path(__file__).resolve().parent.parent / "config" / "sensors"
 DEFAULT_LAYOUTS = ("paper-11", "horizontal-7", "ring-8")
@@ -161,7 +162,8 @@ def run_task(task: Task) -> dict[str, Any]:
     try:
         sensors = [SensorConfig.model_validate(s) for s in task.sensors]
         vehicle = VehicleModelConfig(model=task.vehicle)
-        sc = scenario(task.seed, sensors, vehicle, task.gen)
+        gen = generate(task.seed, task.gen)
+        sc = to_scenario(gen, sensors, vehicle, task.gen)
         world = World.from_config(sc.world)
         filt = None
         if FAULTS[task.fault]:
@@ -191,7 +193,6 @@ def run_task(task: Task) -> dict[str, Any]:
     stop = _stop_reason(reached, result.finished, tr["t"], tr["x"], tr["y"])
     if not reached:
         kinds.append(stop)
-    g_points = sc.route.points
     rec.update(
         outcome="+".join(kinds) or "ok",
         reached_goal=reached,
@@ -208,11 +209,9 @@ def run_task(task: Task) -> dict[str, Any]:
         sim_time_s=round(float(tr["t"][-1]), 2),
         stop_reason=stop,
         last_event=result.events[-1][1] if result.events else "",
-        route_length_m=round(float(np.sum(np.hypot(*np.diff(np.array(g_points), axis=0).T))), 1),
-        base_points=len(g_points),
-        motifs="+".join(sorted(set(sc.description.split("obstacles: ")[-1].split(", "))))
-        if "obstacles: " in sc.description
-        else "",
+        route_length_m=round(gen.route_length_m, 1),
+        base_points=len(gen.route.points),
+        motifs="+".join(gen.motifs),
     )
     if rec["outcome"] != "ok" and task.figures_dir is not None:
         rec["error"] = _write_failure_outputs(
@@ -585,6 +584,8 @@ def sweep(
             stream.write(f"wrote {path}\n")
         return 0
     if opts.ray is not None:
+        if importlib.util.find_spec("ray") is None:
+            raise SweepError("--ray needs the ray package: pip install 'terrain-companion[ray]'")
         check_ray_address(opts.ray)
     csv_path = out / "results.csv"
     kept: list[dict[str, Any]] = []

@@ -32,13 +32,16 @@ from sim.sweep import (
 )
 from sim.worldgen import WorldGenConfig, scenario
 
-# Small worlds keep the default suite short; the full-size sweep is test_smoke_sweep_targets.
+# Tiny worlds (one obstacle motif, a 20-30 m route, 30-40 s flown) keep the default suite
+# short: these tests are about the sweep's machinery, whatever the planner makes of them. The
+# full-size sweep with the targets is test_smoke_sweep_targets.
 SMALL = WorldGenConfig(
-    route_length_m=(30.0, 45.0),
+    route_length_m=(20.0, 30.0),
     min_leg_m=10.0,
     base_points=(2, 3),
-    duration_factor=2.0,
-    duration_extra_s=40.0,
+    obstacles_per_100m=(1.0, 1.0),
+    duration_factor=1.1,
+    duration_extra_s=10.0,
 )
 
 
@@ -80,10 +83,10 @@ def _well_formed(r: dict[str, Any], d_min: float = 2.0) -> None:
 @pytest.mark.slow
 @pytest.mark.timeout(900)
 def test_smoke_sweep_same_records_on_one_and_two_workers() -> None:
-    tasks = _tasks([0, 1]) + _tasks([2], vehicles=("multicopter",))
+    tasks = _tasks([0]) + _tasks([1], vehicles=("multicopter",))
     one = list(run_local(tasks, 1))
     two = list(run_local(tasks, 2))
-    assert len(one) == len(two) == len(tasks) == 9
+    assert len(one) == len(two) == len(tasks) == 6
     for r in one + two:
         _well_formed(r)
     assert _deterministic(one) == _deterministic(two)
