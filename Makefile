@@ -6,7 +6,11 @@ STAMP := $(VENV)/.installed
 SCENARIO ?= config/scenarios/paper.yaml
 OUT ?= out/paper
 
-.PHONY: demo simulate test lint typecheck pytest bench clean
+SWEEP_SEEDS ?= 0:1000
+SWEEP_WORKERS ?= 2
+SWEEP_OUT ?= out/sweep
+
+.PHONY: demo simulate test lint typecheck pytest bench sweep clean
 
 $(STAMP): pyproject.toml
 	@$(PY) -c 'import ensurepip' 2>/dev/null || { \
@@ -38,6 +42,11 @@ pytest: $(STAMP)
 
 bench: $(STAMP)
 	$(BIN)/python -m bench
+
+# The long run: SWEEP_SEEDS random worlds per sensor layout, both vehicle models. Resumable:
+# run it again and it skips the runs already in $(SWEEP_OUT)/results.csv.
+sweep: $(STAMP)
+	$(BIN)/companion sweep --seeds $(SWEEP_SEEDS) --workers $(SWEEP_WORKERS) --out $(SWEEP_OUT) --resume
 
 clean:
 	rm -rf $(VENV) out build *.egg-info

@@ -48,7 +48,7 @@ def _parser() -> argparse.ArgumentParser:
         help="fly many seeded random worlds (seeds x layouts x vehicles) and summarise",
         description="Fly seeded random worlds (sim/worldgen) in process, in parallel, and "
         "write results.csv (row by row), summary.txt, failures.txt and, per failure, its "
-        "scenario file and figures. See docs/simulator.md.",
+        "scenario file and figures. See docs/scenarios.md.",
     )
     sweep.add_argument(
         "--seeds", required=True, help="N, A:B (A..B-1) or a comma list of those, e.g. 0:100"

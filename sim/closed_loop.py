@@ -50,6 +50,10 @@ TRACE_COLUMNS = (
 )
 
 
+STALL_BOX_M = 1.0
+"""`run(stall_stop_s=...)`: a vehicle that stays within a box this wide (m) has stalled."""
+
+
 @dataclass
 class RunResult:
     trace: dict[str, np.ndarray]
@@ -78,11 +82,13 @@ def run(
     world: World,
     progress: Callable[[float, float], None] | None = None,
     sensor_filter: Callable[[float, np.ndarray], np.ndarray] | None = None,
+    stall_stop_s: float | None = None,
 ) -> RunResult:
     """Fly the scenario in process until the goal is reached or duration_s has passed.
 
     sensor_filter(t_s, true_ranges_m) -> ranges_m: what the planner reads instead of the true
-    ranges (sensor faults); None: the true ranges.
+    ranges (sensor faults); None: the true ranges. stall_stop_s: also stop once the vehicle
+    has stayed within a 1 m box for this long (s) (None: never).
     """
     params = scenario.params()
     sensors = scenario.sensor_table()
@@ -150,6 +156,10 @@ def run(
         if diag.finished:
             finished = True
             break
+        if stall_stop_s is not None and k % 20 == 0 and t >= stall_stop_s:
+            window = rows["x"][-round(stall_stop_s / dt) :], rows["y"][-round(stall_stop_s / dt) :]
+            if np.ptp(window[0]) < STALL_BOX_M and np.ptp(window[1]) < STALL_BOX_M:
+                break
     trace = {
         c: np.array(v) if c not in ("decision", "mode", "side") else np.array(v, dtype=object)
         for c, v in rows.items()

@@ -22,6 +22,7 @@ within 2 D_min.
 from __future__ import annotations
 
 import csv
+import importlib.util
 import math
 import multiprocessing
 import signal
@@ -38,10 +39,11 @@ import numpy as np
 import yaml
 
 from companion.tuning import SensorConfig
+from sim.closed_loop import STALL_BOX_M
 from sim.mavlink.config import SensorFaultConfig
 from sim.mavlink.faults import SensorFaults
 from sim.vehicle import VehicleModelConfig
-from sim.worldgen import WorldGenConfig, scenario, scenario_yaml
+from sim.worldgen import WorldGenConfig, generate, scenario, scenario_yaml, to_scenario
 
 LAYOUT_DIR = Path(__file__).resolve().parent.parent / "config" / "sensors"
 DEFAULT_LAYOUTS = ("paper-11", "horizontal-7", "ring-8")
@@ -55,7 +57,7 @@ FAULTS: dict[str, tuple[SensorFaultConfig, ...]] = {
 """Sensor faults applied to every sensor (sim/mavlink's fault model, in process)."""
 
 STALL_WINDOW_S = 60.0
-STALL_DISTANCE_M = 1.0
+"""A run whose vehicle stays within a 1 m box this long (s) is stopped: stalled."""
 
 RECORD_FIELDS = (
     "seed",
@@ -135,12 +137,9 @@ def _stop_reason(reached: bool, finished: bool, t: np.ndarray, x: np.ndarray, y:
         return "goal"
     if finished:
         return "finished off goal"
-    recent = t >= t[-1] - STALL_WINDOW_S
-    if t[-1] >= STALL_WINDOW_S and recent.any():
-        span = math.hypot(float(np.ptp(x[recent])), float(np.ptp(y[recent])))
-        if span < STALL_DISTANCE_M:
-            return "stalled"
-    return "timeout"
+    recent = t >= t[-1] - STALL_WINDOW_S + 1e-9
+    box = max(float(np.ptp(x[recent])), float(np.ptp(y[recent])))
+    return "stalled" if t[-1] >= STALL_WINDOW_S and box < STALL_BOX_M else "timeout"
 
 
 def _pct(a: np.ndarray, q: float) -> float:
@@ -163,12 +162,13 @@ def run_task(task: Task) -> dict[str, Any]:
     try:
         sensors = [SensorConfig.model_validate(s) for s in task.sensors]
         vehicle = VehicleModelConfig(model=task.vehicle)
-        sc = scenario(task.seed, sensors, vehicle, task.gen)
+        gen = generate(task.seed, task.gen)
+        sc = to_scenario(gen, sensors, vehicle, task.gen)
         world = World.from_config(sc.world)
         filt = None
         if FAULTS[task.fault]:
             filt = _HeldFaults(FAULTS[task.fault], sc.sensor_table(), task.seed)
-        result = run(sc, world, sensor_filter=filt)
+        result = run(sc, world, sensor_filter=filt, stall_stop_s=STALL_WINDOW_S)
         m = metrics_mod.for_run(sc, world, result)
     except Exception as exc:  # a crash is a finding, reported in the record
         rec.update(outcome="error", error=f"{type(exc).__name__}: {exc}"[:300])
@@ -193,7 +193,6 @@ def run_task(task: Task) -> dict[str, Any]:
     stop = _stop_reason(reached, result.finished, tr["t"], tr["x"], tr["y"])
     if not reached:
         kinds.append(stop)
-    g_points = sc.route.points
     rec.update(
         outcome="+".join(kinds) or "ok",
         reached_goal=reached,
@@ -210,11 +209,9 @@ def run_task(task: Task) -> dict[str, Any]:
         sim_time_s=round(float(tr["t"][-1]), 2),
         stop_reason=stop,
         last_event=result.events[-1][1] if result.events else "",
-        route_length_m=round(float(np.sum(np.hypot(*np.diff(np.array(g_points), axis=0).T))), 1),
-        base_points=len(g_points),
-        motifs="+".join(sorted(set(sc.description.split("obstacles: ")[-1].split(", "))))
-        if "obstacles: " in sc.description
-        else "",
+        route_length_m=round(gen.route_length_m, 1),
+        base_points=len(gen.route.points),
+        motifs="+".join(gen.motifs),
     )
     if rec["outcome"] != "ok" and task.figures_dir is not None:
         rec["error"] = _write_failure_outputs(
@@ -587,6 +584,8 @@ def sweep(
             stream.write(f"wrote {path}\n")
         return 0
     if opts.ray is not None:
+        if importlib.util.find_spec("ray") is None:
+            raise SweepError("--ray needs the ray package: pip install 'terrain-companion[ray]'")
         check_ray_address(opts.ray)
     csv_path = out / "results.csv"
     kept: list[dict[str, Any]] = []

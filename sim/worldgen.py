@@ -64,6 +64,7 @@ __all__ = [
     "occupancy_grid",
     "scenario",
     "scenario_yaml",
+    "to_scenario",
 ]
 
 _SALT = 0x7E11A1  # keeps these streams apart from other uses of the same small seeds
@@ -580,14 +581,26 @@ def scenario(
     planner: PlannerConfig | None = None,
     name: str | None = None,
 ) -> Scenario:
-    """The seed's world as a scenario, expecting the safety targets: the goal reached, no
+    """The seed's world as a scenario (see `to_scenario`)."""
+    cfg = cfg or WorldGenConfig()
+    return to_scenario(generate(seed, cfg), sensors, vehicle, cfg, planner, name)
+
+
+def to_scenario(
+    gen: GeneratedWorld,
+    sensors: Sequence[SensorConfig],
+    vehicle: VehicleModelConfig | None = None,
+    cfg: WorldGenConfig | None = None,
+    planner: PlannerConfig | None = None,
+    name: str | None = None,
+) -> Scenario:
+    """A generated world as a scenario expecting the safety targets: the goal reached, no
     collision, clearance >= D_min. Planner values: `planner`, else D_min, H_d and v_d of
     cfg with the other defaults."""
     cfg = cfg or WorldGenConfig()
-    gen = generate(seed, cfg)
     planner = planner or PlannerConfig(h_d_m=cfg.h_d_m, d_min_m=cfg.d_min_m, v_d_mps=cfg.v_d_mps)
     return Scenario(
-        name=name or f"random-{seed}",
+        name=name or f"random-{gen.seed}",
         description=gen.describe(),
         duration_s=gen.duration_s,
         world=gen.world,

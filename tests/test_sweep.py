@@ -1,0 +1,298 @@
+"""sim/sweep and `companion sweep`: records, determinism across executors, bad input, Ctrl-C."""
+
+from __future__ import annotations
+
+import csv
+import math
+from collections.abc import Iterator, Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+
+from companion.cli import main
+from companion.tuning import SensorConfig
+from sim.scenario import load_scenario
+from sim.sweep import (
+    DEFAULT_LAYOUTS,
+    FAULTS,
+    RECORD_FIELDS,
+    TIMING_FIELDS,
+    SweepError,
+    SweepOptions,
+    Task,
+    _HeldFaults,
+    load_layout,
+    parse_seeds,
+    run_local,
+    run_task,
+    sweep,
+    tasks_for,
+)
+from sim.worldgen import WorldGenConfig, scenario
+
+# Tiny worlds (one obstacle motif, a 20-30 m route, 30-40 s flown) keep the default suite
+# short: these tests are about the sweep's machinery, whatever the planner makes of them. The
+# full-size sweep with the issue's targets is test_smoke_sweep_targets.
+SMALL = WorldGenConfig(
+    route_length_m=(20.0, 30.0),
+    min_leg_m=10.0,
+    base_points=(2, 3),
+    obstacles_per_100m=(1.0, 1.0),
+    duration_factor=1.1,
+    duration_extra_s=10.0,
+)
+
+
+def _tasks(seeds: Sequence[int], vehicles: Sequence[str] = ("ideal",)) -> list[Task]:
+    layouts = [load_layout(n) for n in DEFAULT_LAYOUTS]
+    return tasks_for(seeds, layouts, vehicles, ["none"], SMALL)
+
+
+def _key(r: dict[str, Any]) -> tuple[Any, ...]:
+    return (r["seed"], r["layout"], r["vehicle"], r["fault"])
+
+
+def _deterministic(records: list[dict[str, Any]]) -> list[dict[str, Any]]:
+    out = [{k: v for k, v in r.items() if k not in TIMING_FIELDS} for r in records]
+    return sorted(out, key=_key)
+
+
+def _well_formed(r: dict[str, Any], d_min: float = 2.0) -> None:
+    assert tuple(r) == RECORD_FIELDS
+    assert r["outcome"] != "error", r["error"]
+    assert isinstance(r["reached_goal"], bool) and isinstance(r["collision"], bool)
+    assert r["collision"] == (r["collision_cycles"] > 0)
+    assert math.isfinite(r["clearance_min_m"]) and r["clearance_min_m"] > -1.0
+    assert r["sim_time_s"] > 0 and r["wall_time_s"] > 0
+    assert r["planner_ms_max"] >= r["planner_ms_p99"] > 0
+    kinds = set(r["outcome"].split("+"))
+    assert ("collision" in kinds) == r["collision"]
+    assert ("clearance" in kinds) == (r["clearance_min_m"] < d_min)
+    assert (r["stop_reason"] == "goal") == r["reached_goal"]
+    if r["reached_goal"] and not r["collision"] and r["clearance_min_m"] >= d_min:
+        assert r["outcome"] == "ok"
+    assert r["stop_reason"] in ("goal", "finished off goal", "stalled", "timeout")
+    for q in ("p50", "p95", "max"):
+        v = r[f"height_err_{q}_m"]
+        assert math.isnan(v) or 0.0 <= v < 20.0
+    assert 2 <= r["base_points"] <= 3 and r["route_length_m"] > 0
+
+
+@pytest.mark.slow
+@pytest.mark.timeout(900)
+def test_smoke_sweep_same_records_on_one_and_two_workers() -> None:
+    tasks = _tasks([0]) + _tasks([1], vehicles=("multicopter",))
+    one = list(run_local(tasks, 1))
+    two = list(run_local(tasks, 2))
+    assert len(one) == len(two) == len(tasks) == 6
+    for r in one + two:
+        _well_formed(r)
+    assert _deterministic(one) == _deterministic(two)
+    assert {r["layout"] for r in one} == set(DEFAULT_LAYOUTS)
+    assert {r["vehicle"] for r in one} == {"ideal", "multicopter"}
+
+
+def test_parse_seeds() -> None:
+    assert parse_seeds("17") == [17]
+    assert parse_seeds("3:6") == [3, 4, 5]
+    assert parse_seeds("0:2, 7,1") == [0, 1, 7]
+    for bad in ("5:3", "3:3", "-1", "a", "1:2:3", "", "1:x"):
+        with pytest.raises(SweepError, match="bad seed range"):
+            parse_seeds(bad)
+
+
+def _run_cli(args: list[str], capsys: pytest.CaptureFixture[str]) -> tuple[int, str]:
+    code = main(["sweep", *args])
+    return code, capsys.readouterr().err
+
+
+@pytest.mark.parametrize(
+    ("args", "named"),
+    [
+        (["--seeds", "9:2"], "bad seed range '9:2'"),
+        (["--seeds", "x"], "bad seed range 'x'"),
+        (["--seeds", "0:2", "--layout", "no-such-layout"], "unknown layout 'no-such-layout'"),
+        (["--seeds", "0:2", "--vehicle", "boat"], "unknown vehicle 'boat'"),
+        (["--seeds", "0:2", "--fault", "gremlins"], "unknown fault 'gremlins'"),
+        (["--seeds", "0:2", "--workers", "0"], "--workers"),
+        (["--seeds", "0:2", "--ray", "127.0.0.1:1"], "cannot reach Ray cluster at 127.0.0.1:1"),
+        (["--seeds", "0:2", "--ray", "nowhere"], "bad Ray address 'nowhere'"),
+    ],
+)
+def test_bad_input_exits_2_with_one_line(
+    args: list[str], named: str, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    code, err = _run_cli([*args, "--out", str(tmp_path / "o")], capsys)
+    assert code == 2
+    assert err.count("\n") == 1 and err.startswith("error: ") and named in err
+    assert "Traceback" not in err
+
+
+def test_unwritable_output_directory(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    blocker = tmp_path / "a-file"
+    blocker.write_text("", encoding="utf-8")
+    code, err = _run_cli(["--seeds", "0:2", "--out", str(blocker / "sub")], capsys)
+    assert code == 2 and err.count("\n") == 1
+    assert f"cannot write output directory {blocker / 'sub'}" in err
+
+
+def test_bad_layout_file(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("- {id: 0, role: obstacle, group: Q, orientation: NONE}\n", encoding="utf-8")
+    code, err = _run_cli(["--seeds", "0", "--layout", str(bad), "--out", str(tmp_path)], capsys)
+    assert code == 2 and err.count("\n") == 1 and "not a valid sensor list" in err
+
+
+def _fake(task: Task, outcome: str = "ok") -> dict[str, Any]:
+    rec: dict[str, Any] = dict.fromkeys(RECORD_FIELDS, "")
+    rec.update(seed=task.seed, layout=task.layout, vehicle=task.vehicle, fault=task.fault)
+    ok = outcome == "ok"
+    rec.update(
+        outcome=outcome,
+        reached_goal=ok,
+        collision=False,
+        collision_cycles=0,
+        clearance_min_m=2.5 if ok else 1.5,
+        stop_reason="goal" if ok else "stalled",
+        last_event="" if ok else "blocked: no path keeps D_min, stopping",
+        wall_time_s=1.0,
+    )
+    return rec
+
+
+def _rows(path: Path) -> list[dict[str, str]]:
+    with path.open(newline="", encoding="utf-8") as fh:
+        return list(csv.DictReader(fh))
+
+
+def test_interrupt_keeps_rows_and_resume_skips_them(tmp_path: Path) -> None:
+    opts = SweepOptions(seeds="0:3", layouts=("paper-11",), vehicles=("ideal",), out=tmp_path)
+    seen: list[list[int]] = []
+
+    def interrupted(tasks: Sequence[Task]) -> Iterator[dict[str, Any]]:
+        seen.append([t.seed for t in tasks])
+        yield _fake(tasks[0])
+        yield _fake(tasks[1], "clearance+stalled")
+        raise KeyboardInterrupt
+
+    out = tmp_path / "stdout.txt"
+    with out.open("w", encoding="utf-8") as stream:
+        assert sweep(opts, stream, executor=interrupted) == 130
+    rows = _rows(tmp_path / "results.csv")
+    assert [r["seed"] for r in rows] == ["0", "1"]
+    assert "interrupted" in out.read_text(encoding="utf-8")
+    # The failure: its scenario file is the seed's world and its line names the command.
+    failures = (tmp_path / "failures.txt").read_text(encoding="utf-8").splitlines()
+    assert len(failures) == 1
+    assert "companion sweep --seeds 1:2 --layout paper-11 --vehicle ideal" in failures[0]
+    path = tmp_path / "failures" / "random-1-paper-11-ideal.yaml"
+    assert f"companion simulate {path}" in failures[0]
+    loaded = load_scenario(path)
+    expected = scenario(1, loaded.sensors)
+    assert loaded.world == expected.world and loaded.route == expected.route
+
+    def rest(tasks: Sequence[Task]) -> Iterator[dict[str, Any]]:
+        seen.append([t.seed for t in tasks])
+        for t in tasks:
+            yield _fake(t)
+
+    resumed = SweepOptions(**{**opts.__dict__, "resume": True})
+    with out.open("w", encoding="utf-8") as stream:
+        assert sweep(resumed, stream, executor=rest) == 0
+    assert seen == [[0, 1, 2], [2]]
+    assert [r["seed"] for r in _rows(tmp_path / "results.csv")] == ["0", "1", "2"]
+    summary = (tmp_path / "summary.txt").read_text(encoding="utf-8")
+    assert "paper-11" in summary and "66.7" in summary  # 2 of 3 reached the goal
+
+
+def test_write_scenarios(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    args = ["--seeds", "4,5", "--layout", "ring-8", "--vehicle", "multicopter"]
+    code = main(["sweep", *args, "--write-scenarios", "--out", str(tmp_path)])
+    assert code == 0
+    files = sorted(tmp_path.glob("*.yaml"))
+    assert [f.name for f in files] == [
+        "random-4-ring-8-multicopter.yaml",
+        "random-5-ring-8-multicopter.yaml",
+    ]
+    sc = load_scenario(files[0])
+    assert sc.vehicle.model == "multicopter" and len(sc.sensors) == 12
+    assert "companion sweep --seeds 4:5" in files[0].read_text(encoding="utf-8")
+
+
+def test_sensor_faults_in_process() -> None:
+    """Noise changes readings, an unsent reading holds the last one, same seed same draws."""
+    table = scenario(0, load_scenario_sensors()).sensor_table()
+    true = np.full(len(table), 5.0)
+    noisy = _HeldFaults(FAULTS["noise"], table, seed=1)
+    a = np.array([noisy(0.05 * k, true) for k in range(20)])
+    again = _HeldFaults(FAULTS["noise"], table, seed=1)
+    assert np.array_equal(a, np.array([again(0.05 * k, true) for k in range(20)]))
+    assert np.all(np.abs(a - 5.0) > 0) and np.all(np.abs(a - 5.0) < 0.5)
+    drop = _HeldFaults(FAULTS["dropout"], table, seed=2)
+    out = [drop(0.05 * k, true + k) for k in range(200)]
+    held = [k for k in range(1, 200) if np.any(out[k] == out[k - 1])]
+    assert held, "a dropped reading holds the previous one"
+    for k, o in enumerate(out):  # the reading now, an earlier one, or max range before any
+        earlier = np.isin(o - true, np.arange(k + 1)) | (o == table.max_range_m)
+        assert earlier.all()
+
+
+@pytest.mark.slow
+@pytest.mark.timeout(600)
+def test_faulty_run_is_deterministic() -> None:
+    (task,) = tasks_for([3], [load_layout("paper-11")], ["ideal"], ["dropout"], SMALL)
+    a, b = run_task(task), run_task(task)
+    _well_formed(a)
+    assert _deterministic([a]) == _deterministic([b])
+
+
+def load_scenario_sensors() -> list[SensorConfig]:
+    return [SensorConfig.model_validate(s) for s in load_layout("paper-11")[1]]
+
+
+@pytest.mark.timeout(1800)  # 840 s seen on a 2-core box with a load of 8; ~1 min when idle
+def test_ray_gives_the_process_pool_records() -> None:
+    ray = pytest.importorskip("ray", reason="ray is not installed (pip install '.[ray]')")
+    from sim.sweep import run_ray
+
+    tasks = _tasks(range(7))[:20]
+    assert len(tasks) == 20
+    pool = list(run_local(tasks, 2))
+    ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False)
+    try:
+        on_ray = list(run_ray(tasks, "local", 2))
+    finally:
+        ray.shutdown()
+    for r in on_ray:
+        _well_formed(r)
+    assert _deterministic(on_ray) == _deterministic(pool)
+
+
+# The issue's targets on 60 full-size worlds (10 seeds x 3 layouts x 2 vehicles). Deselected by
+# default (marker `long`): run with `pytest -m long tests/test_sweep.py -s`.
+@pytest.mark.long
+@pytest.mark.timeout(3600)
+def test_smoke_sweep_targets() -> None:
+    gen = WorldGenConfig(route_length_m=(60.0, 120.0))
+    layouts = [load_layout(n) for n in DEFAULT_LAYOUTS]
+    tasks = tasks_for(range(10), layouts, ["ideal", "multicopter"], ["none"], gen)
+    assert len(tasks) == 60
+    records = list(run_local(tasks, 2))
+    bad = [(r["seed"], r["layout"], r["vehicle"], r["outcome"]) for r in records]
+    bad = [b for b in bad if b[3] != "ok"]
+    clearance = np.array([r["clearance_min_m"] for r in records])
+    h_max = np.array([r["height_err_max_m"] for r in records], dtype=float)
+    p99 = np.array([r["planner_ms_p99"] for r in records])
+    print(
+        f"\n60 worlds: goal {sum(r['reached_goal'] for r in records)}/60, "
+        f"clearance min {clearance.min():.3f} m, height error max {np.nanmax(h_max):.3f} m, "
+        f"planner ms p99 (worst run) {p99.max():.2f}; not ok: {bad}"
+    )
+    assert all(not r["collision"] for r in records)
+    assert clearance.min() >= 2.0
+    assert sum(r["reached_goal"] for r in records) >= 0.99 * len(records)
+    assert np.nanmax(h_max) <= 0.15
+    # Planner time (p99 <= 1 ms, max <= 5 ms) is printed above, not asserted: a test may not
+    # depend on an idle machine. The sweep's summary reports it.
