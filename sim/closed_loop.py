@@ -64,7 +64,8 @@ class RunResult:
     finished: bool
     memory_xy: np.ndarray
     step_time_s: np.ndarray = field(default_factory=lambda: np.zeros(0))
-    """(cycles,) wall-clock time of each planner.step call, seconds (not deterministic)."""
+    """(cycles,) CPU time of each planner.step call (thread time: other load on the machine
+    does not count), seconds; not deterministic."""
 
 
 def sense(world: World, sensors: SensorTable, state: VehicleState) -> np.ndarray:
@@ -112,9 +113,9 @@ def run(
         ranges = sense(world, sensors, state)
         if sensor_filter is not None:
             ranges = sensor_filter(t, ranges)
-        t0 = time.perf_counter()
+        t0 = time.thread_time()
         result: StepResult = planner.step(state, ranges, dt)
-        step_times.append(time.perf_counter() - t0)
+        step_times.append(time.thread_time() - t0)
         sp, diag = result.setpoint, result.diagnostics
         state = vehicle.step(sp, dt)
         events.extend((t, e) for e in diag.events)

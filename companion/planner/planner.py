@@ -487,9 +487,18 @@ class Planner:
         self._after_retreat = None
 
     def _record_track(self, x: float, y: float) -> None:
+        """Append X_d to the covered track every _TRACK_SPACING_M; going back over the
+        track (backing out) unwinds it instead, so that the track never doubles back on
+        itself and a later retreat along it has no cusp."""
         last = self._track[-1]
-        if math.hypot(x - last[0], y - last[1]) >= _TRACK_SPACING_M:
-            self._track.append((x, y))
+        if math.hypot(x - last[0], y - last[1]) < _TRACK_SPACING_M:
+            return
+        if len(self._track) >= 2:
+            prev = self._track[-2]
+            if math.hypot(x - prev[0], y - prev[1]) < _TRACK_SPACING_M:
+                self._track.pop()
+                return
+        self._track.append((x, y))
 
     def _look_ahead(self) -> _LookAhead:
         """The path from X_d to lookahead with its clearances: measured once per cycle (it
