@@ -283,7 +283,7 @@ def report(
     params = (
         scenario.planner.model_dump()
         if scenario is not None
-        else dict(log.header.get("config", {}).get("planner", {}))
+        else dict(log.header.get("planner") or log.header.get("config", {}).get("planner", {}))
     )
     h_d, v_d = float(params.get("h_d_m", 2.0)), float(params.get("v_d_mps", 1.0))
     out_dir.mkdir(parents=True, exist_ok=True)
