@@ -106,7 +106,9 @@ class OutputDir:
     def __call__(self, text: str) -> Path:
         path = Path(text)
         if path.exists() and not path.is_dir():
-            raise argparse.ArgumentTypeError(f"output directory {text}: exists and is not a directory")
+            raise argparse.ArgumentTypeError(
+                f"output directory {text}: exists and is not a directory"
+            )
         parent = path.absolute().parent
         while not parent.exists():
             parent = parent.parent

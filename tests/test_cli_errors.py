@@ -66,9 +66,7 @@ def _good_value(action: argparse.Action, files: dict[str, Path]) -> str | None:
     return None
 
 
-def _argv(
-    command: str, files: dict[str, Path], replace: dict[str, str] | None = None
-) -> list[str]:
+def _argv(command: str, files: dict[str, Path], replace: dict[str, str] | None = None) -> list[str]:
     """A good command line for `command`, with `replace` (dest -> text) swapped in; the
     argument with a replaced dest is given even if optional."""
     replace = replace or {}
