@@ -286,6 +286,16 @@ def report(
         else dict(log.header.get("planner") or log.header.get("config", {}).get("planner", {}))
     )
     h_d, v_d = float(params.get("h_d_m", 2.0)), float(params.get("v_d_mps", 1.0))
+    source = (
+        "the scenario"
+        if scenario is not None
+        else ("the log" if params else "defaults: the log header has none")
+    )
+    stream.write(
+        f"planner: H_d {h_d:g} m, D_min {float(params.get('d_min_m', 2.0)):g} m, "
+        f"v_d {v_d:g} m/s, phi_max {float(params.get('phi_max_rad', 0.6)):g} rad "
+        f"(from {source})\n"
+    )
     out_dir.mkdir(parents=True, exist_ok=True)
     written: list[Path] = []
     if world is not None:

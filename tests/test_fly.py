@@ -3,6 +3,7 @@ loopback (lockstep) meets the same outcome as in process."""
 
 import asyncio
 import io
+import json
 import math
 from pathlib import Path
 
@@ -51,3 +52,14 @@ def test_report_turns_the_flight_log_into_the_same_plots(tmp_path: Path) -> None
     assert report(flown.log_path, tmp_path / "rep2", stream=out) == 0
     assert "reached goal" not in out.getvalue()
     assert (tmp_path / "rep2" / "fig7.png").exists()
+    # The planner parameters come from the log's header, not from defaults.
+    lines = flown.log_path.read_text(encoding="utf-8").splitlines()
+    header = json.loads(lines[0])
+    assert header["type"] == "header"
+    header["planner"] = {**header["planner"], "h_d_m": 3.5, "d_min_m": 2.75}
+    edited = tmp_path / "edited.jsonl"
+    edited.write_text("\n".join([json.dumps(header), *lines[1:]]) + "\n", encoding="utf-8")
+    out = io.StringIO()
+    assert report(edited, tmp_path / "rep3", plots=False, stream=out) == 0
+    assert "H_d 3.5 m, D_min 2.75 m" in out.getvalue() and "(from the log)" in out.getvalue()
+    assert not (tmp_path / "rep3" / "fig6.png").exists()
