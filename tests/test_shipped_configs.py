@@ -95,3 +95,23 @@ def test_shipped_configs_fly_against_the_bundled_simulator() -> None:
         assert service.counters["planner_starts"] >= 1
         assert to_goal < 2.0, to_goal
         assert server.stats.received > 0
+
+
+@pytest.mark.parametrize("name", sorted(p.name for p in (ROOT / "config").glob("*.yaml")))
+def test_flight_logs_of_shipped_configs_are_not_tracked(name: str) -> None:
+    """Running a shipped config leaves the working tree clean: its flight-log directory is
+    ignored by git."""
+    import shutil
+    import subprocess
+
+    git = shutil.which("git")
+    if git is None or not (ROOT / ".git").exists():
+        pytest.skip("not a git checkout")
+    log_dir = load_config(ROOT / "config" / name).logging.flight_log_dir
+    if log_dir is None:
+        return
+    probe = Path(log_dir) / "flight-probe.jsonl"
+    proc = subprocess.run(
+        [git, "-C", str(ROOT), "check-ignore", "-q", str(probe)], check=False, timeout=60
+    )
+    assert proc.returncode == 0, f"{probe} would be an untracked file"

@@ -44,9 +44,7 @@ def __getattr__(name: str) -> Any:
     return getattr(importlib.import_module(module), name)
 
 
-def main(
-    config_path: Path, connection: str | None = None, log_level: str | None = None
-) -> int:
+def main(config_path: Path, connection: str | None = None, log_level: str | None = None) -> int:
     """Run the service from a config file until SIGTERM/SIGINT; returns the exit code.
 
     connection and log_level replace the file's link.connection and logging.level.

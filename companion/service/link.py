@@ -134,8 +134,13 @@ def _host_port(rest: str, text: str) -> tuple[str, int]:
     return host.strip("[]"), port
 
 
-_URL_SCHEMES = {"udp": "udpin", "udpin": "udpin", "udpout": "udpout", "tcp": "tcp"}
-_URL_TCP_OUT = ("tcpout",)
+_URL_SCHEMES: dict[str, LinkKind] = {
+    "udp": "udpin",
+    "udpin": "udpin",
+    "udpout": "udpout",
+    "tcp": "tcp",
+    "tcpout": "tcp",
+}
 
 
 def _parse_url(text: str, scheme: str, rest: str) -> LinkSpec:
@@ -148,7 +153,7 @@ def _parse_url(text: str, scheme: str, rest: str) -> LinkSpec:
                 "use serial:DEVICE:BAUD (e.g. serial:/dev/ttyACM0:57600)"
             )
         return _parse_serial(rest, text)
-    kind = _URL_SCHEMES.get(scheme) or ("tcp" if scheme in _URL_TCP_OUT else None)
+    kind = _URL_SCHEMES.get(scheme)
     if kind is None:
         hint = (
             "the companion connects to the autopilot; use tcp:HOST:PORT"

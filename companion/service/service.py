@@ -1145,9 +1145,7 @@ async def _run_with_signals(service: Service) -> int:
     return await service.run()
 
 
-def main(
-    config_path: Path, connection: str | None = None, log_level: str | None = None
-) -> int:
+def main(config_path: Path, connection: str | None = None, log_level: str | None = None) -> int:
     """`companion run --config FILE`: exit 0 on SIGTERM/SIGINT, 2 on a bad config, 1 on error.
 
     connection, log_level: the command line's `--connection` and `--log-level`.
