@@ -310,6 +310,9 @@ def main(argv: Sequence[str] | None = None) -> int:
             return code
     except KeyboardInterrupt:
         return 130
+    except RuntimeError as exc:  # the run itself failed (e.g. the flight produced no log)
+        print(f"companion {args.command}: failed: {exc}", file=sys.stderr)
+        return 1
     return 2
 
 
