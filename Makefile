@@ -25,7 +25,7 @@ $(STAMP): pyproject.toml
 	  echo "error: PY=$(PY) is $$($(PY) -V 2>&1); the project needs Python >= 3.11"; exit 1; }
 	@$(PY) -c 'import ensurepip, venv' 2>/dev/null || { \
 	  echo "error: $(PY) cannot make a venv (no ensurepip)."; \
-	  echo "  Debian/Ubuntu: sudo apt install $$(basename $$($(PY) -c 'import sys; print(sys.executable)'))-venv"; \
+	  echo "  Debian/Ubuntu: sudo apt install $$($(PY) -c 'import os, sys; print(os.path.basename(os.path.realpath(sys.executable)))')-venv"; \
 	  echo "  (python3-venv for the system's python3), then run make again."; exit 1; }
 	$(PY) -m venv $(VENV)
 	$(BIN)/pip install --quiet --upgrade pip
