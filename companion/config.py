@@ -49,7 +49,7 @@ class Section(BaseModel):
 class LinkConfig(Section):
     """`link:` where the autopilot is."""
 
-    connection: str = "udpin:0.0.0.0:14550"
+    connection: str = "udpin:0.0.0.0:14540"
 
     @field_validator("connection")
     @classmethod
@@ -379,8 +379,11 @@ def parse_config(data: Any, path: Path | None = None) -> ServiceConfig:
     return cfg.resolve_paths(path.parent) if path is not None else cfg
 
 
-def load_config(path: Path) -> ServiceConfig:
-    """Read and validate a config file; ConfigError names each problem."""
+def load_config(path: Path, connection: str | None = None) -> ServiceConfig:
+    """Read and validate a config file; ConfigError names each problem.
+
+    connection: replaces the file's `link.connection` (the command line's `--connection`).
+    """
     try:
         text = path.read_text(encoding="utf-8")
     except OSError as exc:
@@ -401,14 +404,22 @@ def load_config(path: Path) -> ServiceConfig:
             include_sensors_file(data, path.parent)
         except ValueError as exc:
             raise ConfigError(path, [str(exc)]) from None
+    if connection is not None and isinstance(data, dict):
+        link = data.get("link")
+        data["link"] = {**(link if isinstance(link, dict) else {}), "connection": connection}
     return parse_config(data, path)
 
 
-def check_config(path: Path, out: TextIO | None = None) -> int:
-    """`companion check-config`: 0 and a one-line summary if valid, else 2 and the errors."""
+def check_config(path: Path, out: TextIO | None = None, connection: str | None = None) -> int:
+    """`companion check-config`: 0 and a one-line summary if valid, else 2 and the errors.
+
+    A serial device that does not exist or a host name that does not resolve is reported as
+    a warning (exit 0): a USB autopilot may appear, and the network come up, after boot, and
+    the service waits for them.
+    """
     stream = out if out is not None else sys.stderr
     try:
-        cfg = load_config(path)
+        cfg = load_config(path, connection)
         _check_files(cfg)
     except ConfigError as exc:
         print(f"{path}: invalid configuration", file=stream)
@@ -417,10 +428,33 @@ def check_config(path: Path, out: TextIO | None = None) -> int:
         return 2
     print(
         f"{path}: OK ({len(cfg.sensors)} sensors, route from {cfg.route.source}, "
-        f"link {cfg.link.connection})",
+        f"link {cfg.link.spec})",
         file=out if out is not None else sys.stdout,
     )
+    for warning in link_warnings(cfg.link.spec):
+        print(f"{path}: warning: link.connection: {warning}", file=stream)
     return 0
+
+
+def link_warnings(spec: LinkSpec) -> list[str]:
+    """What will stop the link from opening now: a missing serial device, an unknown host."""
+    import os
+    import socket
+    import stat
+
+    if spec.kind == "serial":
+        try:
+            mode = os.stat(spec.device).st_mode
+        except OSError as exc:
+            return [f"serial device {spec.device}: {exc.strerror or exc}"]
+        if not stat.S_ISCHR(mode):
+            return [f"{spec.device} is not a serial (character) device"]
+        return []
+    try:
+        socket.getaddrinfo(spec.host, spec.port, type=socket.SOCK_DGRAM)
+    except (OSError, UnicodeError) as exc:
+        return [f"host {spec.host!r} does not resolve ({getattr(exc, 'strerror', None) or exc})"]
+    return []
 
 
 def _check_files(cfg: ServiceConfig) -> None:

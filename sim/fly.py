@@ -43,10 +43,26 @@ class FlyResult:
     log_path: Path | None
 
 
-def service_config(scenario: Scenario, port: int, home_xy: np.ndarray, log_dir: Path) -> Any:
-    """The service configuration that flies `scenario` against the simulator on `port`."""
+def service_config(
+    scenario: Scenario, port: int, home_xy: np.ndarray, log_dir: Path, submarine: bool = False
+) -> Any:
+    """The service configuration that flies `scenario` against the simulator on `port`.
+
+    Air vehicles: auto start (arm, take off to the scenario's start height, GUIDED/OFFBOARD).
+    Submarines cannot take off (ArduSub refuses MAV_CMD_NAV_TAKEOFF): the pilot arms and
+    selects GUIDED where the vehicle is (see `_pilot_hands_over`), and the service takes over
+    at any depth at or above home's, home being where the vehicle armed.
+    """
     start_z = scenario.start_position[2] if scenario.start_position else scenario.planner.h_d_m
     points = (np.array(scenario.route.points[1:], dtype=float) - home_xy).tolist()
+    control: dict[str, Any] = {
+        "time_source": "sim",
+        "rate_hz": 1.0 / scenario.dt_s,
+        "auto_start": {"enabled": True, "takeoff_alt_m": float(start_z)},
+    }
+    if submarine:
+        control["auto_start"] = {"enabled": False}
+        control["min_engage_height_m"] = 0.0
     return parse_config(
         {
             "link": {"connection": f"udpout:127.0.0.1:{port}"},
@@ -57,11 +73,7 @@ def service_config(scenario: Scenario, port: int, home_xy: np.ndarray, log_dir: 
                     "DISTANCE_SENSOR": 50.0,
                 }
             },
-            "control": {
-                "time_source": "sim",
-                "rate_hz": 1.0 / scenario.dt_s,
-                "auto_start": {"enabled": True, "takeoff_alt_m": float(start_z)},
-            },
+            "control": control,
             "route": {
                 "source": "config",
                 "points": points,
@@ -94,12 +106,17 @@ async def fly_async(
     await server.start()
     home_xy = np.array(server.autopilot.home_enu[:2], dtype=float)
     log_dir = out_dir / "flightlog"
-    cfg = service_config(scenario, server.port, home_xy, log_dir)
+    submarine = server.personality.is_submarine
+    cfg = service_config(scenario, server.port, home_xy, log_dir, submarine)
     service = Service(cfg, UdpOutLink("127.0.0.1", server.port), notifier=SystemdNotifier({}))
     task = asyncio.create_task(service.run())
     goal = np.array(scenario.route.points[-1], dtype=float)
     try:
         t = 0.0
+        if submarine:
+            t = server.config.prearm_delay_s + 0.5
+            await server.run_until(t)
+            _pilot_hands_over(server)
         while t < scenario.duration_s and not service.route_finished.is_set():
             t = min(t + 5.0, scenario.duration_s)
             await server.run_until(t)
@@ -126,6 +143,14 @@ async def fly_async(
     result.finished = bool(service.route_finished.is_set())
     m = metrics_mod.for_run(scenario, world, result)
     return FlyResult(result, m, service.counter_values(), server.stats.lockstep_stalls, logs[-1])
+
+
+def _pilot_hands_over(server: SimServer) -> None:
+    """What an ROV pilot does with the joystick before handing over: GUIDED, then arm."""
+    ap = server.autopilot
+    ap.set_mode(server.personality.mode("GUIDED"), server.t_s, server.state, forced=True)
+    if ap.arm(server.t_s, server.state, force=False) != 0:
+        raise RuntimeError("the simulated ArduSub refused to arm")
 
 
 def trace_from_log(
@@ -283,9 +308,19 @@ def report(
     params = (
         scenario.planner.model_dump()
         if scenario is not None
-        else dict(log.header.get("config", {}).get("planner", {}))
+        else dict(log.header.get("planner") or log.header.get("config", {}).get("planner", {}))
     )
     h_d, v_d = float(params.get("h_d_m", 2.0)), float(params.get("v_d_mps", 1.0))
+    source = (
+        "the scenario"
+        if scenario is not None
+        else ("the log" if params else "defaults: the log header has none")
+    )
+    stream.write(
+        f"planner: H_d {h_d:g} m, D_min {float(params.get('d_min_m', 2.0)):g} m, "
+        f"v_d {v_d:g} m/s, phi_max {float(params.get('phi_max_rad', 0.6)):g} rad "
+        f"(from {source})\n"
+    )
     out_dir.mkdir(parents=True, exist_ok=True)
     written: list[Path] = []
     if world is not None:

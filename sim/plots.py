@@ -180,6 +180,141 @@ def _feature_centre(poly: np.ndarray, circle: tuple[float, float, float] | None)
     return np.asarray(poly.mean(axis=0))
 
 
+def _route_terrain_at_progress(
+    world: World, route_xy: np.ndarray, x: np.ndarray, y: np.ndarray
+) -> np.ndarray:
+    """Terrain height under the original route at each flown sample's progress along it:
+    the route vertex nearest the sample, never going back along the route (m)."""
+    if len(x) == 0 or len(route_xy) == 0:
+        return np.zeros(len(x))
+    idx = np.empty(len(x), dtype=np.int64)
+    for k in range(0, len(x), 512):  # bounded memory: 512 samples x route vertices
+        d2 = (x[k : k + 512, None] - route_xy[None, :, 0]) ** 2 + (
+            y[k : k + 512, None] - route_xy[None, :, 1]
+        ) ** 2
+        idx[k : k + 512] = np.argmin(d2, axis=1)
+    idx = np.maximum.accumulate(idx)
+    r = route_xy[idx]
+    return np.asarray(world.height(r[:, 0], r[:, 1]), dtype=np.float64)
+
+
+def _detected(min_range: Any) -> np.ndarray:
+    """Ranges with "nothing within range" (recorded as 0 or NaN) as NaN: a gap when drawn."""
+    r = np.asarray(min_range, dtype=np.float64)
+    return np.where(np.isfinite(r) & (r > 0.0), r, np.nan)
+
+
+def _overlap(a: tuple[float, float, float, float], b: tuple[float, float, float, float]) -> bool:
+    """Whether two (x0, y0, x1, y1) rectangles intersect."""
+    return a[0] < b[2] and b[0] < a[2] and a[1] < b[3] and b[1] < a[3]
+
+
+def _inside(points: np.ndarray, r: tuple[float, float, float, float]) -> int:
+    if len(points) == 0:
+        return 0
+    m = (
+        (points[:, 0] > r[0])
+        & (points[:, 0] < r[2])
+        & (points[:, 1] > r[1])
+        & (points[:, 1] < r[3])
+    )
+    return int(np.count_nonzero(m))
+
+
+def _place_plan_labels(
+    fig: Any,
+    ax: Any,
+    labels: list[tuple[str, np.ndarray]],
+    handles: list[Any],
+    lines: np.ndarray,
+    marks: np.ndarray,
+    wide: bool,
+) -> None:
+    """Obstacle labels and the legend of the plan view, placed where they hide least.
+
+    Each label goes above, below, right or left of its feature, inside the axes (not into
+    the title), clear of the other labels and of the marks (base points, start, goal,
+    closest approach), crossing as few path/route points as possible. The legend takes
+    the corner that covers no mark and fewest points, or goes outside on the right.
+    Positions are worked out in axes fractions from sizes measured in one layout pass.
+    """
+    x0, x1 = ax.get_xlim()
+    y0, y1 = ax.get_ylim()
+
+    def frac(p: np.ndarray) -> np.ndarray:
+        p = np.asarray(p, dtype=np.float64).reshape(-1, 2)
+        return np.column_stack([(p[:, 0] - x0) / (x1 - x0), (p[:, 1] - y0) / (y1 - y0)])
+
+    style = {"fontsize": 9, "color": "#8b1a1a", "fontweight": "bold", "zorder": 6}
+    texts = [ax.text(0.5, 0.5, t, transform=ax.transAxes, **style) for t, _ in labels]
+    legend = ax.legend(handles=handles, loc="upper right", fontsize=8, framealpha=0.85)
+    fig.draw_without_rendering()
+    box = ax.get_window_extent()
+    renderer = fig.canvas.get_renderer() if hasattr(fig.canvas, "get_renderer") else None
+
+    def size(artist: Any) -> tuple[float, float]:
+        e = artist.get_window_extent(renderer)
+        return e.width / box.width, e.height / box.height
+
+    line_pts = frac(lines[:: max(1, len(lines) // 1500)])
+    mark_pts = frac(marks)
+    placed: list[tuple[float, float, float, float]] = []
+    pad = 0.012
+    for text, (_, poly) in zip(texts, labels, strict=True):
+        w, h = size(text)
+        q = frac(poly)
+        fx0, fy0 = q.min(axis=0)
+        fx1, fy1 = q.max(axis=0)
+        cx, cy = 0.5 * (fx0 + fx1), 0.5 * (fy0 + fy1)
+        candidates = [
+            (cx - w / 2, fy1 + pad, "above"),
+            (cx - w / 2, fy0 - pad - h, "below"),
+            (fx1 + pad, cy - h / 2, "right"),
+            (fx0 - pad - w, cy - h / 2, "left"),
+        ]
+        best: tuple[float, tuple[float, float, float, float]] | None = None
+        for lx, ly, _where in candidates:
+            r = (lx, ly, lx + w, ly + h)
+            score = 0.0
+            if r[0] < 0.005 or r[1] < 0.005 or r[2] > 0.995 or r[3] > 0.995:
+                score += 1000.0
+            score += 100.0 * sum(_overlap(r, o) for o in placed)
+            score += 100.0 * _inside(mark_pts, r) + _inside(line_pts, r)
+            if best is None or score < best[0]:
+                best = (score, r)
+        assert best is not None
+        r = best[1]
+        text.set_position((r[0], r[1]))
+        text.set_ha("left")
+        text.set_va("bottom")
+        placed.append(r)
+
+    # Legend: 1, 2 or 3 columns in each corner; the first that hides no mark and no label
+    # and crosses the fewest path points.
+    sizes = {1: size(legend)}
+    legend.remove()
+    for ncol in (2, 3):
+        trial = ax.legend(handles=handles, loc="upper right", ncol=ncol, fontsize=8)
+        fig.draw_without_rendering()
+        sizes[ncol] = size(trial)
+        trial.remove()
+    m = 0.01
+    scored = []
+    for ncol, (w, h) in sizes.items():
+        corners = {
+            "upper right": (1 - m - w, 1 - m - h),
+            "upper left": (m, 1 - m - h),
+            "lower left": (m, m),
+            "lower right": (1 - m - w, m),
+        }
+        for loc, (lx, ly) in corners.items():
+            r = (lx, ly, lx + w, ly + h)
+            score = 100.0 * (_inside(mark_pts, r) + sum(_overlap(r, o) for o in placed))
+            scored.append((score + _inside(line_pts, r), ncol, loc))
+    _, ncol, loc = min(scored)
+    ax.legend(handles=handles, loc=loc, ncol=ncol, fontsize=8, framealpha=0.85)
+
+
 def _fig6(
     Figure: Any,
     path: Path,
@@ -234,6 +369,7 @@ def _fig6(
     cax = ax_a.inset_axes((1.015, 0.0, 0.022 if wide else 0.035, 1.0))
     fig.colorbar(_scalar_mappable(norm, cmap), cax=cax, label="terrain height z (m)")
     handles: list[Any] = []
+    obstacle_labels: list[tuple[str, np.ndarray]] = []
     for info in world.features:
         if info.polygon is None:
             continue
@@ -252,19 +388,7 @@ def _fig6(
                 )
             )
             if inside:
-                top = float(np.max(info.polygon[:, 1]))
-                ax_a.annotate(
-                    f"{info.name}\n(obstacle)",
-                    (c[0], top),
-                    xytext=(0, 4),
-                    textcoords="offset points",
-                    ha="center",
-                    va="bottom",
-                    fontsize=9,
-                    color="#8b1a1a",
-                    fontweight="bold",
-                    zorder=6,
-                )
+                obstacle_labels.append((f"{info.name}\n(obstacle)", info.polygon))
         elif inside:
             ax_a.plot(c[0], c[1], marker="+", color="#5a4a30", ms=8, zorder=3)
             ax_a.annotate(
@@ -343,13 +467,45 @@ def _fig6(
             base[-1, 0], base[-1, 1], "*", color="gold", ms=14, mec="black", zorder=6, label="goal"
         )[0]
     )
+    clearance = np.asarray(trace.get("clearance", np.full(len(x), np.nan)), dtype=np.float64)
+    closest_xy: np.ndarray | None = None
+    if np.isfinite(clearance).any():
+        i = int(np.nanargmin(clearance))
+        closest_xy = np.array([x[i], y[i]])
+        d_min = float(params["d_min_m"])
+        ring = np.linspace(0.0, 2.0 * np.pi, 73)
+        handles.append(
+            ax_a.plot(
+                x[i] + d_min * np.cos(ring),
+                y[i] + d_min * np.sin(ring),
+                ls=":",
+                color="#2166ac",
+                lw=1.3,
+                zorder=5,
+                label=f"D_min = {d_min:g} m around the closest approach",
+            )[0]
+        )
+        handles.append(
+            ax_a.plot(
+                x[i],
+                y[i],
+                "D",
+                color="#2166ac",
+                mec="white",
+                ms=6,
+                zorder=6,
+                label=f"closest approach: {clearance[i]:.2f} m at t = {trace['t'][i]:.1f} s",
+            )[0]
+        )
     ax_a.set_xlim(ext[0], ext[1])
     ax_a.set_ylim(ext[2], ext[3])
     ax_a.set_aspect("equal")
     ax_a.set_xlabel("x east (m)")
     ax_a.set_ylabel("y north (m)")
     ax_a.set_title("(a) plan view: original route (dashed) and flown path (solid)", fontsize=11)
-    ax_a.legend(handles=handles, loc="best", fontsize=8, framealpha=0.85)
+    marks = [base, np.array([[x[0], y[0]]]) if len(x) else np.empty((0, 2))]
+    if closest_xy is not None:
+        marks.append(closest_xy[None, :])
 
     # (b) z along the path ---------------------------------------------------------------
     s = _path_length(x, y)
@@ -372,21 +528,21 @@ def _fig6(
         s, ground + h_d, ls="--", color="#2166ac", lw=0.9, label=f"terrain + H_d (H_d = {h_d:g} m)"
     )
     ax_b.plot(s, z, color="black", lw=1.4, label="vehicle z")
-    # The terrain the original route runs over (against route arc length): what the
-    # vehicle would have had to climb without the horizontal correction.
-    rs = route.polyline().s
-    r_ground = np.asarray(world.height(route_xy[:, 0], route_xy[:, 1]), dtype=np.float64)
-    if np.max(r_ground - np.interp(rs, s, ground) if len(s) else r_ground) > 0.25:
+    # The terrain under the original route at the vehicle's progress along it (the route
+    # point nearest the vehicle, never going back), on the same distance-travelled axis: what
+    # the vehicle would have had to climb without the horizontal correction.
+    r_ground = _route_terrain_at_progress(world, route_xy, x, y)
+    if len(s) and np.max(r_ground - ground) > 0.25:
         ax_b.plot(
-            rs,
+            s,
             r_ground,
             ls=":",
             color="#b22222",
             lw=1.1,
-            label="terrain along the original route (vs route length)",
+            label="terrain under the original route, at the same progress along it",
         )
     ax_b.set_ylim(bottom=floor)
-    ax_b.set_xlim(0, max(float(s[-1]) if len(s) else 1.0, float(rs[-1])))
+    ax_b.set_xlim(0, float(s[-1]) if len(s) > 1 and s[-1] > 0 else 1.0)
     ax_b.set_xlabel("distance travelled (horizontal, m)")
     ax_b.set_ylabel("z (m)")
     ax_b.set_title("(b) height z along the flown path", fontsize=11)
@@ -437,11 +593,18 @@ def _fig6(
     wl = max(wx, wy)
     # Heights exaggerated so the relief reads, but never taller than half the long side.
     ax_c.set_box_aspect((wx, wy, min(max(wz * 2.0, 0.15 * wl), 0.5 * wl)))
-    ax_c.view_init(elev=30, azim=-100 if wide else -125)
+    ax_c.view_init(elev=28, azim=-62 if wide else -125)
+    # Few ticks on the short axes: their projections are short and labels would stack.
+    from matplotlib.ticker import MaxNLocator
+
+    for axis, span in ((ax_c.xaxis, wx), (ax_c.yaxis, wy), (ax_c.zaxis, wz)):
+        axis.set_major_locator(
+            MaxNLocator(max(2, min(8, round(8 * span / wl))) if axis is not ax_c.zaxis else 3)
+        )
     ax_c.set_xlabel("x (m)", labelpad=4)
-    ax_c.set_ylabel("y (m)", labelpad=4)
-    ax_c.set_zlabel("z (m)", labelpad=2)
-    ax_c.tick_params(labelsize=7)
+    ax_c.set_ylabel("y (m)", labelpad=2)
+    ax_c.set_zlabel("z (m)", labelpad=0)
+    ax_c.tick_params(labelsize=7, pad=0)
     ax_c.set_title(
         "(c) 3-D view: flown trajectory (black), original route on the ground (dashed), "
         "heights exaggerated"
@@ -452,6 +615,15 @@ def _fig6(
 
     head = f"{title}: " if title else ""
     fig.suptitle(f"{head}trajectory (cf. paper Fig. 6)", fontsize=13)
+    _place_plan_labels(
+        fig,
+        ax_a,
+        obstacle_labels,
+        handles,
+        lines=np.concatenate([np.column_stack([x, y]), route_xy]),
+        marks=np.concatenate(marks),
+        wide=wide,
+    )
     _fill_cell_3d(fig, ax_c, data_artists)
     fig.savefig(path, dpi=_DPI)
     return path
@@ -628,16 +800,17 @@ def _fig7(
     ax_a.legend(h, lab, loc="center left", bbox_to_anchor=(1.005, 0.5), fontsize=8)
 
     # (b) min d_i and the true clearance ---------------------------------------------------
-    min_range = np.asarray(trace["min_range"], dtype=np.float64)
+    # Nothing within range is recorded as 0 (or NaN): drawn as a gap, not as a distance.
+    min_range = _detected(trace["min_range"])
     clearance = np.asarray(trace["clearance"], dtype=np.float64)
-    top_b = max(float(np.max(min_range)) if len(t) else 0.0, 3.0 * d_min) * 1.15
-    detected = min_range[min_range > 0]
+    detected = min_range[np.isfinite(min_range)]
+    top_b = max(float(detected.max()) if len(detected) else 0.0, 3.0 * d_min) * 1.15
     ax_b.plot(
         t,
         min_range,
         color="black",
         lw=1.1,
-        label="min dᵢ measured (0 = nothing)"
+        label="min dᵢ measured (gaps: nothing in range)"
         + (f"\n  smallest {detected.min():.2f} m" if len(detected) else ""),
     )
     finite = np.isfinite(clearance)
@@ -690,7 +863,28 @@ def _fig7(
             lw=1.1,
             label=f"±φ_max = ±{phi_max:g} rad" if sgn > 0 else None,
         )
-    ax_c.set_ylim(-1.2 * phi_max, 1.2 * phi_max)
+    phi_d = np.asarray(trace["phi_d"], dtype=np.float64)
+    beyond = np.nan_to_num(np.abs(pitch)) > phi_max + 1e-6
+    if beyond.any():
+        # The planner bounds phi_d (eq. 4); the airframe's own pitch is the tracker's: a
+        # multirotor tilts to accelerate (take-off, catching up with X_d), beyond phi_max.
+        max_phi_d = float(np.nanmax(np.abs(phi_d))) if np.isfinite(phi_d).any() else 0.0
+        bounded = "stays within" if max_phi_d <= phi_max + 1e-6 else "is NOT within"
+        _note(
+            ax_c,
+            f"vehicle pitch beyond ±φ_max in {float(np.mean(beyond)) * 100:.1f} % of cycles "
+            f"(max {float(np.nanmax(np.abs(pitch))):.2f} rad): the autopilot's tracker\n"
+            f"tilting the airframe (take-off, accelerating), not the planner; "
+            f"φ_d {bounded} ±φ_max",
+            0.995,
+            0.96,
+            va="top",
+        )
+    pitch_abs = np.abs(pitch[np.isfinite(pitch)])
+    pitch_top = 1.2 * phi_max
+    if len(pitch_abs):
+        pitch_top = max(pitch_top, min(float(pitch_abs.max()) * 1.1, 3.0 * phi_max))
+    ax_c.set_ylim(-pitch_top, pitch_top)
     ax_c.set_ylabel("pitch (rad)")
     ax_c.set_title("(c) desired pitch φ_d and vehicle pitch", fontsize=10, loc="left")
     ax_c.legend(loc="center left", bbox_to_anchor=(1.005, 0.5), fontsize=8)

@@ -495,7 +495,7 @@ class _Heightmap(_Feature):
             path = Path(base_dir) / path
         try:
             data = np.load(path, allow_pickle=False)
-        except (OSError, ValueError) as exc:
+        except (OSError, ValueError, EOFError) as exc:
             raise ValueError(f"heightmap '{cfg.name}': cannot load file {path}: {exc}") from exc
         if data.ndim != 2 or data.shape[0] < 2 or data.shape[1] < 2:
             raise ValueError(

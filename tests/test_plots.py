@@ -162,3 +162,66 @@ def test_import_has_no_matplotlib_side_effect() -> None:
     subprocess.run(
         [sys.executable, "-c", code], check=True, timeout=60, cwd=Path(__file__).parents[1]
     )
+
+
+def test_nothing_detected_is_a_gap_not_a_distance() -> None:
+    from sim.plots import _detected
+
+    got = _detected([0.0, 3.5, math.nan, 0.0, 1.2])
+    assert np.isnan(got[[0, 2, 3]]).all()
+    assert got[1] == 3.5 and got[4] == 1.2
+
+
+def test_route_terrain_is_taken_at_the_vehicles_progress() -> None:
+    """The profile's original-route terrain is on the flown path's axis: a box on the route
+    shows up where the vehicle passes it, however far off the route the vehicle is."""
+    from sim.plots import _route_terrain_at_progress
+
+    world = World.from_config(
+        WorldConfig.model_validate(
+            {"features": [{"type": "box", "name": "b", "center": [20, 0], "size_m": [2, 2, 5]}]}
+        )
+    )
+    route_xy = np.column_stack([np.linspace(0, 40, 401), np.zeros(401)])
+    x = np.linspace(0, 40, 81)
+    y = np.full_like(x, -10.0)  # a detour 10 m south of the route
+    y[::7] = 3.0  # back and forth: progress never goes back
+    h = _route_terrain_at_progress(world, route_xy, x, y)
+    assert h.shape == x.shape
+    on_box = np.abs(x - 20.0) < 0.9
+    assert np.all(h[on_box] > 4.0) and np.all(h[np.abs(x - 20.0) > 1.2] < 0.5)
+
+
+@needs_matplotlib
+def test_plan_labels_and_legend_hide_nothing() -> None:
+    """Obstacle labels side by side do not overlap each other or leave the axes; the legend
+    does not cover the goal or start marks."""
+    from matplotlib.figure import Figure
+
+    from sim.plots import _place_plan_labels
+
+    fig = Figure(figsize=(12, 4), layout="constrained")
+    ax = fig.add_subplot()
+    ax.set_xlim(-10, 90)
+    ax.set_ylim(-15, 12)
+    ax.set_aspect("equal")
+    squares = [np.array([[x0, 4.0], [x0 + 3, 4.0], [x0 + 3, 7], [x0, 7]]) for x0 in (30, 33, 36)]
+    labels = [(f"long obstacle name {i}\n(obstacle)", sq) for i, sq in enumerate(squares)]
+    path = np.column_stack([np.linspace(0, 70, 200), np.zeros(200)])
+    goal, start = np.array([70.0, 0.0]), np.array([0.0, 0.0])
+    handles = [ax.plot(*path.T, label=f"entry {i}")[0] for i in range(1)]
+    handles += [ax.plot(*goal, "*", label="goal")[0], ax.plot(*start, "o", label="start")[0]]
+    handles += [ax.plot([], [], label=f"another legend entry {i}")[0] for i in range(6)]
+    _place_plan_labels(fig, ax, labels, handles, path, np.array([goal, start]), wide=True)
+    fig.draw_without_rendering()
+    axbox = ax.get_window_extent()
+    boxes = [t.get_window_extent() for t in ax.texts]
+    assert len(boxes) == 3
+    for i, b in enumerate(boxes):
+        assert axbox.contains(b.x0, b.y0) and axbox.contains(b.x1, b.y1)
+        for other in boxes[i + 1 :]:
+            assert not b.overlaps(other)
+    legend = ax.get_legend().get_window_extent()
+    for p in (goal, start):
+        px, py = ax.transData.transform(p)
+        assert not legend.contains(px, py)

@@ -174,3 +174,88 @@ def test_signing_checks_signature_before_recording_the_stream_time() -> None:
     assert len(rx.decode(frame)) == 1
     assert rx.decode(frame) == [] and rx.counters.bad_signature == 2  # replay
     assert rx.decode(MavCodec(1, 1).encode(hb)) == [] and rx.counters.unsigned_rejected == 1
+
+
+@pytest.mark.parametrize(
+    ("text", "pymavlink"),
+    [
+        ("udp://:14540", "udpin:0.0.0.0:14540"),
+        ("udp://127.0.0.1:14540", "udpin:127.0.0.1:14540"),
+        ("udpin://0.0.0.0:14540", "udpin:0.0.0.0:14540"),
+        ("udpout://192.168.1.5:14580", "udpout:192.168.1.5:14580"),
+        ("tcp://localhost:5760", "tcp:localhost:5760"),
+        ("tcpout://localhost:5760", "tcp:localhost:5760"),
+        ("serial:///dev/ttyACM0:57600", "serial:/dev/ttyACM0:57600"),
+    ],
+)
+def test_parse_connection_mavsdk_urls(text: str, pymavlink: str) -> None:
+    """MAVSDK's URL forms are read as the pymavlink form the service opens."""
+    assert str(parse_connection(text)) == pymavlink
+    assert parse_connection(text) == parse_connection(pymavlink)
+
+
+@pytest.mark.parametrize(
+    ("text", "hint"),
+    [
+        ("tcpin://:5760", "tcp:HOST:PORT"),
+        ("serial_flowcontrol:///dev/ttyACM0:57600", "serial:DEVICE:BAUD"),
+        ("udpout://:14550", "needs a host"),
+        ("http://host:80", "udpin:HOST:PORT"),
+    ],
+)
+def test_parse_connection_refuses_urls_with_the_pymavlink_form(text: str, hint: str) -> None:
+    with pytest.raises(ValueError, match=hint):
+        parse_connection(text)
+
+
+async def test_mavsdk_url_opens_like_pymavlink_form() -> None:
+    """`run` opens what `check-config` accepts: the URL form binds and receives."""
+    import socket
+
+    link = open_link("udp://127.0.0.1:0")
+    got: list[bytes] = []
+    await link.open(lambda d, p: got.append(d))
+    try:
+        assert isinstance(link, UdpInLink)
+        host, port = link.local_address
+        with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+            s.sendto(b"ping", (host, port))
+        for _ in range(200):
+            if got:
+                break
+            await asyncio.sleep(0.01)
+        assert got == [b"ping"]
+    finally:
+        await link.close()
+
+
+@pytest.mark.parametrize("hear_first", [False, True])
+async def test_waiting_for_a_heartbeat_is_said_once(
+    hear_first: bool, monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture
+) -> None:
+    """A service that hears nothing says where it waits, once; one that hears an autopilot
+    says nothing of the kind."""
+    import socket
+    import time
+
+    from companion.service import connection as conn_mod
+
+    monkeypatch.setattr(conn_mod, "WAITING_NOTICE_S", 0.2)
+    link = open_link("udpin:127.0.0.1:0")
+    conn = conn_mod.Connection(link, MavCodec(), time.monotonic)
+    await conn.open()
+    try:
+        if hear_first:
+            hb = MavCodec(1, 1).encode(mavlink2.MAVLink_heartbeat_message(2, 3, 1, 5, 4, 3))
+            with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+                s.sendto(hb, link.local_address)
+        await asyncio.sleep(1.0)
+    finally:
+        await conn.close()
+    said = [r.getMessage() for r in caplog.records if "waiting for autopilot" in r.getMessage()]
+    if hear_first:
+        assert said == []
+    else:
+        assert len(said) == 1
+        assert said[0].startswith(f"waiting for autopilot heartbeat on {link.name}")
+        assert "must send here first" in said[0]

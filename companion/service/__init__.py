@@ -44,8 +44,11 @@ def __getattr__(name: str) -> Any:
     return getattr(importlib.import_module(module), name)
 
 
-def main(config_path: Path) -> int:
-    """Run the service from a config file until SIGTERM/SIGINT; returns the exit code."""
+def main(config_path: Path, connection: str | None = None, log_level: str | None = None) -> int:
+    """Run the service from a config file until SIGTERM/SIGINT; returns the exit code.
+
+    connection and log_level replace the file's link.connection and logging.level.
+    """
     from companion.service.service import main as _main
 
-    return _main(config_path)
+    return _main(config_path, connection, log_level)

@@ -1145,15 +1145,18 @@ async def _run_with_signals(service: Service) -> int:
     return await service.run()
 
 
-def main(config_path: Path) -> int:
-    """`companion run --config FILE`: exit 0 on SIGTERM/SIGINT, 2 on a bad config, 1 on error."""
+def main(config_path: Path, connection: str | None = None, log_level: str | None = None) -> int:
+    """`companion run --config FILE`: exit 0 on SIGTERM/SIGINT, 2 on a bad config, 1 on error.
+
+    connection, log_level: the command line's `--connection` and `--log-level`.
+    """
     try:
-        cfg = load_config(Path(config_path))
+        cfg = load_config(Path(config_path), connection)
     except ConfigError as exc:
         print(f"{config_path}: invalid configuration", file=sys.stderr)
         for line in exc.errors:
             print(f"  {line}", file=sys.stderr)
         return 2
-    configure_logging(cfg.logging.level)
+    configure_logging(log_level or cfg.logging.level)
     service = Service(cfg, open_link(cfg.link.spec))
     return asyncio.run(_run_with_signals(service))

@@ -6,7 +6,7 @@ position, a bad latitude, position + velocity in a terrain frame, force-set acce
 makes the vehicle stop (mode_guided.init), it is not ignored. `decode_px4` follows PX4's
 mavlink_receiver: only frames 5, 6 and 11; anything else is logged and ignored. PX4 turns a
 frame-6 altitude into a local z with the home/origin difference of the wrong sign (observed
-on SITL, see AUTOPILOT_NOTES); that is reproduced when home is not at the origin altitude.
+on SITL, see docs/autopilots.md); that is reproduced when home is not at the origin altitude.
 
 Both return a `Decision`; whether the vehicle is in GUIDED/OFFBOARD is the autopilot's
 business. Targets come out in the world's local ENU frame (metres, yaw counter-clockwise
