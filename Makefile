@@ -6,7 +6,7 @@ STAMP := $(VENV)/.installed
 SCENARIO ?= config/scenarios/paper.yaml
 OUT ?= out/paper
 
-.PHONY: demo simulate test lint typecheck pytest bench clean
+.PHONY: demo simulate test sitl-test lint typecheck pytest bench clean
 
 $(STAMP): pyproject.toml
 	@$(PY) -c 'import ensurepip' 2>/dev/null || { \
@@ -35,6 +35,10 @@ typecheck: $(STAMP)
 
 pytest: $(STAMP)
 	$(BIN)/pytest -q
+
+# The real ArduCopter SITL in the loop (../shared/sitl/); about 4 minutes, flights side by side.
+sitl-test: $(STAMP)
+	$(BIN)/pytest -m sitl -q --durations=0
 
 bench: $(STAMP)
 	$(BIN)/python -m bench

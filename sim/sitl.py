@@ -65,6 +65,11 @@ SITL_DIR = Path("..") / "shared" / "sitl"
 PROXIMITY_ID_BASE = 10
 """ArduPilot re-reports proximity sector k (orientation YAW_45 * k) as DISTANCE_SENSOR id 10+k."""
 MAX_RANGEFINDERS = 10
+GOAL_RADIUS_M = 0.5
+SETTLE_AFTER_FINISH_S = 5.0
+"""After the route is done the vehicle holds at the goal; the flight goes on this long so
+that `reached_goal` is judged on where SITL's vehicle got to, not on its lag at the last
+planner cycle."""
 
 
 def repo_root() -> Path:
@@ -279,6 +284,9 @@ class WiredSensors:
 
     params: dict[str, float]
     companion_sensors: list[dict[str, Any]]
+    optional_ids: list[int]
+    """The proximity sectors: ArduPilot sends nothing for a sector that has never seen an
+    object in range, so the companion must take their absence as "nothing detected"."""
 
 
 def wire_to_autopilot(sensors: Sequence[Any]) -> WiredSensors:
@@ -323,10 +331,27 @@ def wire_to_autopilot(sensors: Sequence[Any]) -> WiredSensors:
             params[f"{key}_MAX"] = spec.max_range_m
             entry["id"] = n_rf - 1
         table.append(entry)
-    return WiredSensors(params, table)
+    optional = [e["id"] for e in table if e["id"] >= PROXIMITY_ID_BASE]
+    return WiredSensors(params, table, optional)
 
 
 # --- the flight ----------------------------------------------------------------------------
+
+
+def _heartbeat_frames(data: bytes) -> list[bytes]:
+    """The MAVLink 2 HEARTBEAT frames in a datagram, found from the headers alone (cheap: the
+    service decodes everything anyway)."""
+    frames = []
+    i = 0
+    while i + 12 <= len(data):
+        if data[i] != 0xFD:
+            i += 1
+            continue
+        size = 12 + data[i + 1] + (13 if data[i + 2] & 1 else 0)
+        if data[i + 7] == 0 and data[i + 8] == 0 and data[i + 9] == 0:
+            frames.append(data[i : i + size])
+        i += size
+    return frames
 
 
 class TapLink(UdpInLink):
@@ -359,10 +384,11 @@ class TapLink(UdpInLink):
 
     def _deliver(self, data: bytes, peer: Any) -> None:
         now = time.monotonic()
-        for msg in self._in.parse_buffer(data) or []:
-            if msg.get_type() == "HEARTBEAT" and msg.get_srcComponent() == 1:
-                armed = bool(msg.base_mode & mavlink.MAV_MODE_FLAG_SAFETY_ARMED)
-                self.heartbeats.append((now, int(msg.custom_mode), armed))
+        for frame in _heartbeat_frames(data):
+            for msg in self._in.parse_buffer(frame) or []:
+                if msg.get_type() == "HEARTBEAT" and msg.get_srcComponent() == 1:
+                    armed = bool(msg.base_mode & mavlink.MAV_MODE_FLAG_SAFETY_ARMED)
+                    self.heartbeats.append((now, int(msg.custom_mode), armed))
         super()._deliver(data, peer)
 
 
@@ -436,17 +462,23 @@ class Flight:
         self.world = World.from_config(scenario.world, base_dir)
         start = scenario.start(self.world)
         self.anchor = np.array([start[0], start[1], float(self.world.height(start[0], start[1]))])
+        extra = dict(service_extra or {})
         if topology == "autopilot":
-            sensors = wire_to_autopilot(scenario.sensors).companion_sensors
+            wired = wire_to_autopilot(scenario.sensors)
+            sensors = wired.companion_sensors
+            fs = extra.get("failsafe", {})
+            extra["failsafe"] = {**fs, "optional_sensor_ids": wired.optional_ids}
         else:
             sensors = [s.model_dump(exclude_none=True) for s in scenario.sensors]
         self.log_dir = out_dir / "flightlog"
         self.cfg = service_config(
-            scenario, sitl.port, self.anchor[:2], self.log_dir, sensors, service_extra
+            scenario, sitl.port, self.anchor[:2], self.log_dir, sensors, extra
         )
-        # Rates in wall time: ArduPilot drops a MAVLink rangefinder after 500 ms (simulated)
-        # without data, so feed it at 10 Hz of simulated time.
-        rate = 20.0 if topology == "companion" else 10.0 * max(sitl.speedup, 1.0)
+        # Rates in wall time: 10 Hz, twice what the service's 0.5 s sensor age limit needs
+        # (every DISTANCE_SENSOR costs the service a decode: 11 sensors at 20 Hz were half
+        # its CPU). ArduPilot drops a MAVLink rangefinder after 500 ms (simulated) without
+        # data, so it is fed at 10 Hz of simulated time.
+        rate = 10.0 * max(sitl.speedup, 1.0) if topology == "autopilot" else 10.0
         bridge_cfg = BridgeConfig(
             connect=f"tcp:127.0.0.1:{sitl.bridge_port}",
             send_to=topology,
@@ -523,6 +555,12 @@ class Flight:
                     self.scenario.planner.v_d_mps,
                     finished,
                 )
+                goal = np.array(self.scenario.route.points[-1], dtype=float)
+                after = track[track[:, 0] >= float(log.t_s[planner_rows[-1]])]
+                if finished and len(after):
+                    d = np.hypot(after[:, 1] - goal[0], after[:, 2] - goal[1])
+                    m["goal_distance_m"] = float(d.min())
+                    m["reached_goal"] = bool(d.min() < GOAL_RADIUS_M)
                 m["phi_max_rad"] = self.scenario.planner.phi_max_rad
                 m["d_min_m"] = self.scenario.planner.d_min_m
         texts = [e for _, e in result.events] if result is not None else []
@@ -556,7 +594,8 @@ async def fly_on_sitl(
     flight = Flight(scenario, base_dir, sitl, out_dir, topology)
     await flight.start()
     try:
-        await flight.wait(timeout_s if timeout_s is not None else scenario.duration_s + 90.0)
+        if await flight.wait(timeout_s if timeout_s is not None else scenario.duration_s + 90.0):
+            await asyncio.sleep(SETTLE_AFTER_FINISH_S)
     finally:
         await flight.stop()
     return flight.outcome(time.monotonic() - t0)
