@@ -174,6 +174,15 @@ def set_mode(conn: Any, mode: str) -> int:
     )
 
 
+def centre_sticks(conn: Any, stop: threading.Event) -> None:
+    """A pilot's hands off the sticks: RC_CHANNELS_OVERRIDE 1500 on roll, pitch, throttle
+    and yaw at 5 Hz. Without RC input SITL's throttle reads low, and in LOITER the copter
+    then descends and lands (seen), which is not what a pilot taking over would do."""
+    while not stop.is_set():
+        conn.mav.rc_channels_override_send(1, 1, 1500, 1500, 1500, 1500, 0, 0, 0, 0)
+        stop.wait(0.2)
+
+
 @dataclass
 class PilotRun:
     """A flight a ground station interfered with: (monotonic s, what, COMMAND_ACK result)."""
@@ -193,11 +202,14 @@ def pilot_job(spec: SitlSpec, out: str) -> PilotRun:
         flight = Flight(scenario, SCENARIOS, sitl, Path(out))
         actions: list[tuple[float, str, int]] = []
         engaged_again = None
+        stop = threading.Event()
         await flight.start()
         try:
             if not await flight.wait(90.0, until=lambda: flight.engaged):
                 raise RuntimeError("the service never took over")
             gcs = await asyncio.to_thread(gcs_connect, sitl)
+            sticks = threading.Thread(target=centre_sticks, args=(gcs, stop), daemon=True)
+            sticks.start()
             await asyncio.sleep(6.0)
 
             async def act(what: str, fn: Any) -> None:
@@ -217,8 +229,11 @@ def pilot_job(spec: SitlSpec, out: str) -> PilotRun:
             await asyncio.sleep(3.0)
             await act("RTL", lambda: set_mode(gcs, "RTL"))
             await asyncio.sleep(8.0)
+            stop.set()
+            sticks.join(2.0)
             gcs.close()
         finally:
+            stop.set()
             await flight.stop()
         return PilotRun(actions, engaged_again, flight.outcome(0.0))
 
@@ -380,11 +395,11 @@ def claims_job(spec: SitlSpec) -> dict[str, Any]:
         seen["sensors"] = _sensor_table(_collect(conn, ["DISTANCE_SENSOR"], 4.0), 4.0)
         feed[6] = (1200, 1300)  # the left sector loses its object
         feed.pop(39)  # the forward-down rangefinder goes silent
-        time.sleep(1.5)
+        _collect(conn, None, 1.5)  # drain what was queued meanwhile
         seen["sensors_after"] = _sensor_table(_collect(conn, ["DISTANCE_SENSOR"], 2.0), 2.0)
 
         # GUIDED targets
-        sitl.wait_ready()
+        sitl.wait_ready(port=sitl.gcs_port)  # SERIAL2 carries the feeder
         home = None
         conn.mav.command_long_send(
             1,
