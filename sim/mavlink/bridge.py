@@ -201,8 +201,14 @@ class SensorBridge:
                 self._request_streams()
             to_companion = self.config.send_to == "companion"
             codec = self.codec if to_companion else self.link_codec
-            for msg in self.core.distance_messages(codec.mav, time.monotonic()):
-                self._send(msg, to_companion=to_companion)
+            msgs = self.core.distance_messages(codec.mav, time.monotonic())
+            if to_companion and msgs:
+                # one datagram per round, as an autopilot packs its UDP stream: a busy
+                # companion's socket buffer then holds many more rounds
+                self._send_companion(b"".join(codec.encode(m) for m in msgs), len(msgs))
+            else:
+                for msg in msgs:
+                    self._send(msg)
             next_send += period
             await asyncio.sleep(max(next_send - time.monotonic(), 0.0))
 
@@ -259,6 +265,11 @@ class SensorBridge:
                     0,
                 )
             )
+
+    def _send_companion(self, data: bytes, count: int) -> None:
+        if self._companion is not None:
+            self._companion.sendto(data)
+            self.sent += count
 
     def _send(self, msg: Any, to_companion: bool = False) -> None:
         data = (self.codec if to_companion else self.link_codec).encode(msg)
