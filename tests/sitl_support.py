@@ -326,7 +326,8 @@ def claims_job(spec: SitlSpec) -> dict[str, Any]:
     conn = mavutil.mavlink_connection(
         f"udpin:127.0.0.1:{spec.port}", source_system=1, source_component=191
     )
-    conn.wait_heartbeat(timeout=30)
+    hb = conn.wait_heartbeat(timeout=30)
+    seen["heartbeat"] = (hb.get_srcSystem(), hb.get_srcComponent(), hb.type, hb.autopilot)
     unasked = _collect(conn, None, 3.0)
     seen["unasked_types"] = sorted({m.get_type() for _, m in unasked} - {"BAD_DATA"})
     seen["params"] = {name: _param(conn, name) for name in PARAM_NAMES}

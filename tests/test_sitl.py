@@ -234,6 +234,22 @@ def claims(runs: dict[str, Any]) -> dict[str, Any]:
     return seen
 
 
+def test_heartbeat_and_unasked_streams(claims: dict[str, Any]) -> None:
+    assert claims["heartbeat"] == (
+        1,
+        1,
+        mavlink.MAV_TYPE_QUADROTOR,
+        mavlink.MAV_AUTOPILOT_ARDUPILOTMEGA,
+    )
+    # nothing streamed before it is asked for (event messages may come: home, texts)
+    assert set(claims["unasked_types"]) <= {
+        "HEARTBEAT",
+        "STATUSTEXT",
+        "HOME_POSITION",
+        "GPS_GLOBAL_ORIGIN",
+    }
+
+
 def test_parameter_names(claims: dict[str, Any]) -> None:
     p = claims["params"]
     assert p["RNGFND1_MAX"] == pytest.approx(10.0)  # metres, set by us
