@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import math
 import os
 import signal
 import socket
@@ -65,6 +66,8 @@ SITL_DIR = Path("..") / "shared" / "sitl"
 PROXIMITY_ID_BASE = 10
 """ArduPilot re-reports proximity sector k (orientation YAW_45 * k) as DISTANCE_SENSOR id 10+k."""
 MAX_RANGEFINDERS = 10
+CMAC = (-35.363261, 149.165230, 584.0)
+"""The launcher's default home (lat, lon deg, alt m AMSL)."""
 GOAL_RADIUS_M = 0.5
 SETTLE_AFTER_FINISH_S = 5.0
 """After the route is done the vehicle holds at the goal; the flight goes on this long so
@@ -111,6 +114,8 @@ class Sitl:
     fast_ekf: bool = True
     params: dict[str, float] = field(default_factory=dict)
     workdir: Path | None = None
+    heading_deg: float | None = None
+    """Initial heading, degrees clockwise from north (the launcher's default home, CMAC)."""
     proc: subprocess.Popen[bytes] | None = None
     started_at: float = 0.0
     _log: TextIO | None = None
@@ -137,6 +142,8 @@ class Sitl:
         ]
         if self.workdir is not None:
             cmd += ["--workdir", str(self.workdir)]
+        if self.heading_deg is not None:
+            cmd += ["--home", f"{CMAC[0]},{CMAC[1]},{CMAC[2]},{self.heading_deg:g}"]
         if self.fast_ekf:
             cmd.append("--fast-ekf")
         for name, value in self.params.items():
@@ -601,6 +608,12 @@ async def fly_on_sitl(
     return flight.outcome(time.monotonic() - t0)
 
 
+def start_heading_deg(scenario: Scenario) -> float:
+    """The scenario's start heading as SITL's home heading (compass degrees), so that the
+    vehicle boots facing the way the scenario starts, as `companion fly` starts it."""
+    return (90.0 - math.degrees(scenario.route_obj().start_heading_rad)) % 360.0
+
+
 def sitl_params(scenario: Scenario, topology: Topology) -> dict[str, float]:
     """Parameters SITL boots with for this scenario and topology."""
     if topology == "autopilot":
@@ -632,6 +645,7 @@ def run_cli(
         fast_ekf=fast_ekf,
         params=sitl_params(scenario, topology),
         workdir=out_dir / "sitl",
+        heading_deg=start_heading_deg(scenario),
     )
     with sitl:
         sitl.wait_heartbeat()
@@ -644,6 +658,11 @@ def run_cli(
     )
     if flown.metrics:
         stream.write(metrics_mod.format_table(flown.metrics) + "\n")
+        if "goal_distance_m" in flown.metrics:
+            stream.write(
+                f"closest to the goal after the route was done: "
+                f"{flown.metrics['goal_distance_m']:.2f} m (SITL's position)\n"
+            )
     else:
         stream.write("the service never took over\n")
     for t, text in flown.result.events if flown.result is not None else []:

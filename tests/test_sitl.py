@@ -21,7 +21,7 @@ import numpy as np
 import pytest
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
-from sim.sitl import Sitl, SitlFlight, free_udp_port, sitl_params
+from sim.sitl import Sitl, SitlFlight, free_udp_port, sitl_params, start_heading_deg
 from tests.sitl_support import (
     COPTER_MODE,
     LAUNCHER,
@@ -69,6 +69,7 @@ def runs(tmp_path_factory: pytest.TempPathFactory) -> Iterator[dict[str, Any]]:
             fast_ekf=name != "default-ekf",
             params=sitl_params(scenario_for(scenario), topology),  # type: ignore[arg-type]
             workdir=tmp / name / "sitl",
+            heading_deg=start_heading_deg(scenario_for(scenario)),
         )
         queue.append((name, sitl, (flight_job, scenario, topology, str(tmp / name), ready)))
     queue.insert(
