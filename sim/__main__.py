@@ -99,6 +99,9 @@ def _parser() -> argparse.ArgumentParser:
         help="bridge sends DISTANCE_SENSOR to the companion (default) or feeds SITL's MAVLink "
         "rangefinders/proximity, the companion reading SITL's re-reports",
     )
+    sitl.add_argument(
+        "--sensors", type=Path, metavar="FILE", help="sensor table replacing the scenario's"
+    )
     sitl.add_argument("--instance", type=int, default=0, help="SITL instance (TCP 5762+10*I)")
     sitl.add_argument("--speedup", type=float, default=1.0, help="SITL speed-up (1)")
     sitl.add_argument("--default-ekf", action="store_true", help="EKF3 as shipped (no --fast-ekf)")
@@ -253,6 +256,7 @@ def main(argv: list[str] | None = None) -> int:
                 args.instance,
                 args.speedup,
                 not args.default_ekf,
+                args.sensors,
             )
         return _serve(args) if args.command == "serve" else _bridge(args)
     except ValueError as exc:  # ScenarioError and config validation: say what is wrong

@@ -38,6 +38,7 @@ from pathlib import Path
 from typing import Any, Literal, TextIO
 
 import numpy as np
+import yaml
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
 from companion.config import parse_config
@@ -153,6 +154,7 @@ class Sitl:
     def start(self) -> None:
         if self.workdir is None:
             self.workdir = Path(tempfile.mkdtemp(prefix=f"sitl-{self.instance}-"))
+        self.workdir = self.workdir.resolve()  # the launcher changes into it
         self.workdir.mkdir(parents=True, exist_ok=True)
         self._log = (self.workdir / "sitl.out").open("w", encoding="utf-8")
         self.proc = subprocess.Popen(
@@ -203,6 +205,9 @@ class Sitl:
                 try:
                     data = s.recv(65536)
                 except TimeoutError:
+                    panic = [ln for ln in self.output().splitlines() if "PANIC" in ln]
+                    if panic:  # SITL stops there without exiting
+                        raise SitlError(f"SITL failed to start: {panic[0]}") from None
                     continue
                 for msg in mav.parse_buffer(data) or []:
                     if msg.get_type() == "HEARTBEAT" and msg.get_srcComponent() == 1:
@@ -628,14 +633,20 @@ def run_cli(
     instance: int = 0,
     speedup: float = 1.0,
     fast_ekf: bool = True,
+    sensors_path: Path | None = None,
     stream: TextIO = sys.stdout,
 ) -> int:
-    """`python -m sim sitl`: fly a scenario on the real SITL, print the metrics table."""
+    """`python -m sim sitl`: fly a scenario on the real SITL, print the metrics table.
+    sensors_path: a sensor table (YAML list) replacing the scenario's."""
     launcher = find_sitl()
     if launcher is None:
         stream.write(f"error: no SITL at {SITL_DIR}/arducopter-sitl next to the repository\n")
         return 2
     scenario = load_scenario(scenario_path)
+    if sensors_path is not None:
+        with sensors_path.open(encoding="utf-8") as f:
+            table = yaml.safe_load(f)
+        scenario = Scenario.model_validate({**scenario.model_dump(), "sensors": table})
     out_dir.mkdir(parents=True, exist_ok=True)
     sitl = Sitl(
         launcher,
@@ -647,10 +658,16 @@ def run_cli(
         workdir=out_dir / "sitl",
         heading_deg=start_heading_deg(scenario),
     )
-    with sitl:
-        sitl.wait_heartbeat()
-        boot = sitl.wait_ready()
-        flown = asyncio.run(fly_on_sitl(scenario, scenario_path.parent, sitl, out_dir, topology))
+    try:
+        with sitl:
+            sitl.wait_heartbeat()
+            boot = sitl.wait_ready()
+            flown = asyncio.run(
+                fly_on_sitl(scenario, scenario_path.parent, sitl, out_dir, topology)
+            )
+    except SitlError as exc:
+        stream.write(f"error: {exc} (SITL output: {sitl.workdir}/sitl.out)\n")
+        return 1
     stream.write(
         f"scenario {scenario.name} on ArduCopter SITL (speed-up {speedup:g}, "
         f"{'EKF3' if not fast_ekf else 'fast EKF'}, sensors to the {topology}); ready after "
