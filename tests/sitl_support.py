@@ -160,8 +160,9 @@ def flight_job(spec: SitlSpec, name: str, topology: str, out: str, ready: bool) 
     if ready:
         sitl.wait_ready()
     scenario = scenario_for(name)
+    timeout = scenario.duration_s + 30.0  # the scenario's own budget, plus the take-off
     return asyncio.run(
-        fly_on_sitl(scenario, SCENARIOS, sitl, Path(out), topology)  # type: ignore[arg-type]
+        fly_on_sitl(scenario, SCENARIOS, sitl, Path(out), topology, timeout)  # type: ignore[arg-type]
     )
 
 
