@@ -17,7 +17,7 @@ SWEEP_SEEDS ?= 0:1000
 SWEEP_WORKERS ?= 2
 SWEEP_OUT ?= out/sweep
 
-.PHONY: demo simulate test lint typecheck pytest bench sweep clean
+.PHONY: demo simulate test sitl-test lint typecheck pytest bench sweep clean
 
 $(STAMP): pyproject.toml
 	@if [ -z "$(PY)" ]; then \
@@ -53,6 +53,10 @@ typecheck: $(STAMP)
 
 pytest: $(STAMP)
 	$(BIN)/pytest -q
+
+# The real ArduCopter SITL in the loop (../shared/sitl/); about 4 minutes, flights side by side.
+sitl-test: $(STAMP)
+	$(BIN)/pytest -m sitl -q --durations=0
 
 # `make bench` writes out/bench-results.json (untracked, the tree stays clean); the published
 # bench/results.json is rewritten only on request: `make bench BENCH_OUT=bench/results.json`.

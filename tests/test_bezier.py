@@ -50,7 +50,7 @@ def test_split_then_join_equals_original(c: np.ndarray, at: float) -> None:
         np.testing.assert_allclose(right.evaluate(u), b.evaluate(at + (1 - at) * u), atol=1e-9)
 
 
-@settings(max_examples=60)
+@settings(max_examples=60, deadline=None)  # 200 001 points a case: slow on a loaded machine
 @given(controls)
 def test_arc_length_against_dense_polyline(c: np.ndarray) -> None:
     b = CubicBezier(c)

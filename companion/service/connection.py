@@ -122,7 +122,9 @@ class Connection:
         if src_comp != self.target_component:
             self._ignored("other_component", msg)
             return
-        if peer is not None and peer != self._peer:
+        if peer is not None and peer != self._peer and msg.get_type() == "HEARTBEAT":
+            # Only the autopilot's own heartbeat says where it is: other messages in its name
+            # may come from elsewhere (sensors sent to the companion directly).
             self._peer = peer
             self.link.pin_peer(peer)
         self.counters["accepted"] += 1

@@ -42,6 +42,7 @@ from sim.mavlink.rangefinder import Rangefinders
 log = logging.getLogger(__name__)
 
 REQUEST_EVERY_S = 1.0
+PERIPHERAL_COMPONENT = 158
 
 
 class BridgeCore:
@@ -59,11 +60,15 @@ class BridgeCore:
         self.autopilot_sysid: int | None = None
         self.home: LocalFrame | None = None
         self.time_boot_ms = 0
+        self._boot_ms_rx: float | None = None
         self._geo: GeoPoint | None = None
         self._attitude_ned: tuple[float, float, float] | None = None
         self._rangefinders: dict[str, Rangefinders] = {}
+        self.track: list[tuple[float, ...]] | None = None
+        """Set to a list to record (t_rx, x, y, z, roll, pitch, yaw) of the world-frame pose
+        at each GLOBAL_POSITION_INT (t_rx as given to handle(), e.g. monotonic seconds)."""
 
-    def handle(self, msg: Any) -> None:
+    def handle(self, msg: Any, t_rx: float | None = None) -> None:
         kind = msg.get_type()
         if kind == "HEARTBEAT" and msg.autopilot != mavlink.MAV_AUTOPILOT_INVALID:
             self.autopilot_sysid = msg.get_srcSystem()
@@ -76,10 +81,28 @@ class BridgeCore:
             )
         elif kind == "GLOBAL_POSITION_INT":
             self._geo = GeoPoint(msg.lat * 1e-7, msg.lon * 1e-7, msg.alt * 1e-3)
-            self.time_boot_ms = int(msg.time_boot_ms)
+            self._stamp(msg, t_rx)
+            if self.track is not None and t_rx is not None:
+                state = self.pose()
+                if state is not None:
+                    self.track.append(
+                        (t_rx, *state.position_enu, state.roll_rad, state.pitch_rad, state.yaw_rad)
+                    )
         elif kind == "ATTITUDE":
             self._attitude_ned = (float(msg.roll), float(msg.pitch), float(msg.yaw))
-            self.time_boot_ms = int(msg.time_boot_ms)
+            self._stamp(msg, t_rx)
+
+    def _stamp(self, msg: Any, t_rx: float | None) -> None:
+        self.time_boot_ms = int(msg.time_boot_ms)
+        self._boot_ms_rx = t_rx
+
+    def boot_ms_at(self, now: float | None) -> int:
+        """The autopilot's time_boot_ms now, extrapolated in wall time from the last stamped
+        message (as the autopilot stamps its re-reports with the send time); without `now`,
+        the last one received."""
+        if now is None or self._boot_ms_rx is None:
+            return self.time_boot_ms
+        return self.time_boot_ms + max(int((now - self._boot_ms_rx) * 1000.0), 0)
 
     def pose(self) -> VehicleState | None:
         """The vehicle in the world frame, once home, position and attitude are known."""
@@ -95,8 +118,9 @@ class BridgeCore:
             self._rangefinders[family] = Rangefinders(self.sensors, self.world, family)
         return self._rangefinders[family]
 
-    def distance_messages(self, mav: Any) -> list[Any]:
-        """One DISTANCE_SENSOR per sensor at the current pose (none before it is known)."""
+    def distance_messages(self, mav: Any, now: float | None = None) -> list[Any]:
+        """One DISTANCE_SENSOR per sensor at the current pose (none before it is known);
+        `now` (the clock handle() was given) stamps them at the autopilot's current time."""
         state = self.pose()
         if state is None:
             return []
@@ -104,7 +128,8 @@ class BridgeCore:
             return []  # which autopilot's conventions to imitate is not known yet
         rf = self.rangefinders()
         ranges = rf.measure(state)
-        return [rf.message(mav, i, float(ranges[i]), self.time_boot_ms) for i in range(len(rf))]
+        stamp = self.boot_ms_at(now)
+        return [rf.message(mav, i, float(ranges[i]), stamp) for i in range(len(rf))]
 
 
 class _Link(asyncio.DatagramProtocol):
@@ -127,6 +152,10 @@ class SensorBridge:
         self.config = config
         self.core = BridgeCore(config, world, sensors)
         self.codec = Codec(config.system_id, config.component_id)
+        # What goes to the autopilot must not claim to come from the autopilot itself
+        # (ArduPilot ignores its own system/component): component 1 is replaced by 158.
+        link_component = PERIPHERAL_COMPONENT if config.component_id == 1 else config.component_id
+        self.link_codec = Codec(config.system_id, link_component)
         self.sent = 0
         self._udp: asyncio.DatagramTransport | None = None
         self._udp_peer: Any = None
@@ -170,8 +199,16 @@ class SensorBridge:
             if now >= next_request:
                 next_request = now + REQUEST_EVERY_S
                 self._request_streams()
-            for msg in self.core.distance_messages(self.codec.mav):
-                self._send(msg, to_companion=self.config.send_to == "companion")
+            to_companion = self.config.send_to == "companion"
+            codec = self.codec if to_companion else self.link_codec
+            msgs = self.core.distance_messages(codec.mav, time.monotonic())
+            if to_companion and msgs:
+                # one datagram per round, as an autopilot packs its UDP stream: a busy
+                # companion's socket buffer then holds many more rounds
+                self._send_companion(b"".join(codec.encode(m) for m in msgs), len(msgs))
+            else:
+                for msg in msgs:
+                    self._send(msg)
             next_send += period
             await asyncio.sleep(max(next_send - time.monotonic(), 0.0))
 
@@ -188,7 +225,7 @@ class SensorBridge:
 
     def _request_streams(self) -> None:
         """Heartbeat, and ask for what the pose needs (cheap to repeat, as GCSs do)."""
-        mav = self.codec.mav
+        mav = self.link_codec.mav
         self._send(
             mav.heartbeat_encode(
                 mavlink.MAV_TYPE_ONBOARD_CONTROLLER, mavlink.MAV_AUTOPILOT_INVALID, 0, 0, 0, 3
@@ -229,8 +266,13 @@ class SensorBridge:
                 )
             )
 
+    def _send_companion(self, data: bytes, count: int) -> None:
+        if self._companion is not None:
+            self._companion.sendto(data)
+            self.sent += count
+
     def _send(self, msg: Any, to_companion: bool = False) -> None:
-        data = self.codec.encode(msg)
+        data = (self.codec if to_companion else self.link_codec).encode(msg)
         if to_companion:
             if self._companion is not None:
                 self._companion.sendto(data)
@@ -257,5 +299,6 @@ class SensorBridge:
             self._feed(data)
 
     def _feed(self, data: bytes) -> None:
-        for msg in self.codec.decode(data):
-            self.core.handle(msg)
+        now = time.monotonic()
+        for msg in self.link_codec.decode(data):
+            self.core.handle(msg, now)

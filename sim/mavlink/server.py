@@ -617,7 +617,10 @@ class SimServer:
             return ap.set_home(p[0] > 0.5, p[4], p[5], p[6], state)
         if cmd == mavlink.MAV_CMD_SET_MESSAGE_INTERVAL:
             ok = self.scheduler.set_interval_us(int(p[0]), p[1], now)
-            return ACCEPTED if ok else FAILED
+            if ok:
+                return ACCEPTED
+            # ArduCopter SITL answers DENIED for a message it cannot stream (seen, id 60000)
+            return FAILED if pers.family == "px4" else int(mavlink.MAV_RESULT_DENIED)
         if cmd == mavlink.MAV_CMD_GET_MESSAGE_INTERVAL:
             msg_id = int(p[0])
             self._send(

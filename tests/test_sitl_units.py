@@ -1,0 +1,69 @@
+"""Pieces of the real-SITL harness that need no SITL: sensor wiring, frame scanning."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+import yaml
+from pymavlink.dialects.v20 import ardupilotmega as mavlink
+
+from sim.scenario import load_scenario
+from sim.sitl import _heartbeat_frames, start_heading_deg, wire_to_autopilot
+
+ROOT = Path(__file__).resolve().parent.parent
+
+
+def _wired_sensors() -> list[object]:
+    scenario = load_scenario(ROOT / "config" / "scenarios" / "wall.yaml")
+    with (ROOT / "config" / "sensors" / "ardupilot-wired.yaml").open(encoding="utf-8") as f:
+        table = yaml.safe_load(f)
+    raw = {**scenario.model_dump(), "sensors": table}
+    return list(type(scenario).model_validate(raw).sensors)
+
+
+def test_wiring_maps_sensors_to_proximity_sectors_and_rangefinders() -> None:
+    wired = wire_to_autopilot(_wired_sensors())
+    ids = {e["name"]: e["id"] for e in wired.companion_sensors}
+    # horizontal: proximity sector k re-reported as id 10 + k (YAW_45 * k)
+    assert ids == {
+        "front": 10,
+        "front-left": 17,
+        "left": 16,
+        "front-right": 11,
+        "right": 12,
+        "down-forward": 0,
+        "down": 1,
+    }
+    p = wired.params
+    assert p["PRX1_TYPE"] == 2
+    assert (p["RNGFND1_TYPE"], p["RNGFND1_ORIENT"], p["RNGFND1_MAX"]) == (10, 39, 10.0)
+    assert (p["RNGFND2_TYPE"], p["RNGFND2_ORIENT"]) == (10, 25)
+    assert "RNGFND3_TYPE" not in p
+    assert sorted(wired.optional_ids) == [10, 11, 12, 16, 17]
+
+
+def test_wiring_refuses_what_ardupilot_cannot_carry() -> None:
+    paper = load_scenario(ROOT / "config" / "scenarios" / "paper.yaml")
+    with pytest.raises(ValueError, match="custom rotation"):
+        wire_to_autopilot(paper.sensors)
+    twice = _wired_sensors()
+    twice.append(twice[-1].model_copy(update={"sensor_id": 99}))  # type: ignore[attr-defined]
+    with pytest.raises(ValueError, match="orientation 25 is taken"):
+        wire_to_autopilot(twice)
+
+
+def test_heartbeat_frames_found_among_other_messages() -> None:
+    mav = mavlink.MAVLink(None, srcSystem=1, srcComponent=1)
+    hb = mav.heartbeat_encode(2, 3, 81, 4, 4, 3).pack(mav)
+    att = mav.attitude_encode(1, 0.1, 0.2, 0.3, 0, 0, 0).pack(mav)
+    frames = _heartbeat_frames(att + hb + att)
+    assert frames == [hb]
+    assert _heartbeat_frames(b"\x00garbage" + att) == []
+
+
+def test_start_heading_as_compass() -> None:
+    paper = load_scenario(ROOT / "config" / "scenarios" / "paper.yaml")  # west
+    wall = load_scenario(ROOT / "config" / "scenarios" / "wall.yaml")  # east
+    assert start_heading_deg(paper) == pytest.approx(270.0)
+    assert start_heading_deg(wall) == pytest.approx(90.0)
