@@ -206,6 +206,10 @@ class Service:
         self._finish_handled = False
         self._hold: _Hold | None = None
         self._planner_failed = False
+        self._building = False
+        self._build_gen = 0
+        self._build_task: asyncio.Task[Any] | None = None
+        self._route_error = ""
         self._shift = np.zeros(3)
         """Sum of the accepted position jumps: planner frame = estimate - shift (ENU m)."""
         self._last_planner_xd: FloatArray | None = None
@@ -459,7 +463,7 @@ class Service:
         next_t = self.clock.now()
         while True:
             now = self.clock.now()
-            self._tick(now)
+            self._safe_tick(now)
             next_t += self.period_s
             delay = next_t - self.clock.now()
             if delay < 0:
@@ -470,7 +474,7 @@ class Service:
 
     def _sim_tick(self, now: float) -> None:
         if self._next_cycle_t is None or now >= self._next_cycle_t - 1e-9:
-            self._tick(now)
+            self._safe_tick(now)
             nxt = (self._next_cycle_t if self._next_cycle_t is not None else now) + self.period_s
             self._next_cycle_t = nxt if nxt > now else now + self.period_s
 
@@ -684,6 +688,24 @@ class Service:
 
     # === the cycle =========================================================================
 
+    def _safe_tick(self, now: float) -> None:
+        """`_tick`, but a bug in it holds the vehicle and is reported instead of ending the
+        process (which would leave the vehicle in GUIDED/OFFBOARD with nobody commanding)."""
+        try:
+            self._tick(now)
+        except Exception:
+            self.counters["cycle_errors"] += 1
+            if self.counters["cycle_errors"] <= 5:
+                log.exception("cycle failed; holding")
+            self._say("internal error: holding", Severity.CRITICAL)
+            with contextlib.suppress(Exception):
+                if self.ownership.engaged:
+                    sp = self._hold_setpoint()
+                    if sp is not None:
+                        self._send_setpoint(sp, now)
+                for sev, text in self.texts.drain(now):
+                    self.conn.send(statustext_message(sev, text))
+
     def _tick(self, now: float) -> None:
         """One cycle at service time `now`: ownership, failsafe, planner or hold, setpoint."""
         self._last_cycle_wall = time.monotonic()
@@ -864,12 +886,50 @@ class Service:
             self.route_finished.set()
             return
         arrival = self.cfg.route.arrival_heading_deg
-        route = Route(
-            np.vstack([here, remaining]),
-            state.yaw_rad,
-            None if arrival is None else math.radians(arrival),
-        )
-        self.planner = self.planner_factory(self.params, self.sensors, route, state.position_enu)
+        points = np.vstack([here, remaining])
+        heading = state.yaw_rad
+        arrival_rad = None if arrival is None else math.radians(arrival)
+        start = state.position_enu.copy()
+        self.planner = None
+        self._build_gen += 1
+        gen = self._build_gen
+        self._seg_start = here.copy()
+        self._planner_t = None
+        self.last_setpoint = None  # X_d starts at the vehicle: nothing to compare on resume
+        self._last_planner_xd = None
+
+        def build() -> tuple[PlannerLike, Route]:
+            route = Route(points, heading, arrival_rad)
+            return self.planner_factory(self.params, self.sensors, route, start), route
+
+        if self.sim_time:
+            # lockstep: the simulator waits for us, so building here costs no real-time cycle
+            try:
+                self._planner_built(gen, *build())
+            except Exception as exc:
+                self._route_failed(exc)
+            return
+        # real time: a long route must not stop heartbeats and setpoints (hold meanwhile)
+        self._building = True
+        task = asyncio.get_running_loop().create_task(asyncio.to_thread(build))
+        task.add_done_callback(lambda t: self._build_done(gen, t))
+        self._build_task = task
+
+    def _build_done(self, gen: int, task: asyncio.Task[tuple[PlannerLike, Route]]) -> None:
+        if gen != self._build_gen or task.cancelled():
+            return
+        self._building = False
+        exc = task.exception()
+        if exc is not None:
+            self._route_failed(exc)
+            return
+        self._planner_built(gen, *task.result())
+
+    def _planner_built(self, gen: int, planner: PlannerLike, route: Route) -> None:
+        if gen != self._build_gen:
+            return
+        self.planner = planner
+        self._route_error = ""
         if self.flight_log is not None:
             self.flight_log.write(
                 {
@@ -880,12 +940,23 @@ class Service:
                     "arrival_heading_rad": route.arrival_heading_rad,
                 }
             )
-        self._seg_start = here.copy()
-        self._planner_t = None
-        self.last_setpoint = None  # X_d starts at the vehicle: nothing to compare on resume
-        self._last_planner_xd = None
         self.counters["planner_starts"] += 1
-        log.info("planner started at %s with %d base points", np.round(here, 2), len(remaining))
+        log.info(
+            "planner started at %s with %d base points",
+            np.round(route.base_points[0], 2),
+            len(route.base_points) - 1,
+        )
+
+    def _route_failed(self, exc: BaseException) -> None:
+        """The route or planner could not be built: hold where the vehicle is and say why
+        (never end the process with the vehicle in GUIDED/OFFBOARD)."""
+        self.planner = None
+        self._building = False
+        self._planner_failed = True
+        self._route_error = str(exc)
+        self.counters["route_build_failed"] += 1
+        log.error("cannot fly the route: %s; holding", exc)
+        self._say(f"cannot fly route: {exc}: holding", Severity.CRITICAL)
 
     def _step_planner(self, now: float) -> StepResult | None:
         estimate = self._vehicle_state()
@@ -903,7 +974,7 @@ class Service:
                 log.info("X_d %.1f m from the vehicle: restarting the planner here", gap)
                 self._start_planner(state)
         if self.planner is None:
-            return None
+            return None  # route complete, being built, or not flyable: the caller holds
         dt = self.period_s if self._planner_t is None else now - self._planner_t
         dt = min(max(dt, 0.0), 3.0 * self.period_s)
         self._planner_t = now
@@ -1114,6 +1185,8 @@ _PROBLEM_PREFIXES = (
     "signing.bad",
     "signing.rejected",
     "service.cycle_overruns",
+    "service.cycle_errors",
+    "service.route_build_failed",
     "service.planner_errors",
     "service.setpoints_refused",
     "statustext.dropped",
