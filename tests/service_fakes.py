@@ -84,6 +84,8 @@ class FakeAutopilot:
     yaw: float = 0.0
     ranges_cm: dict[int, int] = field(default_factory=lambda: {0: 0, 1: 700, 2: 700})
     orientations: dict[int, tuple[int, list[float]]] = field(default_factory=dict)
+    limits_cm: dict[int, tuple[int, int]] = field(default_factory=dict)
+    """Per sensor id (min_distance, max_distance) cm; default (10, 1000)."""
     rate_hz: float = 40.0
     heartbeat_enabled: bool = True
     telemetry_enabled: bool = True
@@ -187,9 +189,10 @@ class FakeAutopilot:
             if self.sensors_enabled is not None and sid not in self.sensors_enabled:
                 continue
             orientation, q = self.orientations[sid]
+            lo, hi = self.limits_cm.get(sid, (10, 1000))
             self.send(
                 mavlink2.MAVLink_distance_sensor_message(
-                    tb, 10, 1000, cm, 0, sid, orientation, 0, 0.0, 0.0, q
+                    tb, lo, hi, cm, 0, sid, orientation, 0, 0.0, 0.0, q
                 )
             )
 

@@ -175,3 +175,39 @@ async def test_planner_built_off_the_event_loop() -> None:
         # heartbeats (1 Hz) and hold setpoints went on while the planner was being built
         assert len(ap.of_type("HEARTBEAT")) >= n_hb + 1
         assert len(ap.setpoints()) >= n_sp + 5
+
+
+# === 3. an obstacle closer than the minimum range is not free space ========================
+
+
+@pytest.mark.parametrize(
+    ("cm", "limits", "expect"),
+    [
+        (250, (300, 1000), "refused"),  # (a) the message claims a 3 m minimum
+        (5, (10, 1000), "at_min"),  # (b) closer than the configured 0.1 m minimum
+        (150, (1, 2), "refused"),  # (c) message limits 1-2 cm
+    ],
+    ids=["msg_min_300cm", "below_configured_min", "msg_limits_1_2cm"],
+)
+async def test_close_obstacle_never_free_space(cm: int, limits: tuple[int, int], expect: str) -> None:
+    box = PlannerBox()
+    async with over_udp(factory=box, ranges_cm={0: 800, 1: 700, 2: 700}) as (svc, ap, task):
+        await until(lambda: svc.configured)
+        ap.set_mode(GUIDED)
+        await until(lambda: bool(box.made) and len(box.made[-1].inputs) >= 5)
+        ap.ranges_cm[0] = cm
+        ap.limits_cm[0] = limits
+        await asyncio.sleep(1.5)
+        planner = box.made[-1]
+        n_before = len(planner.inputs)
+        await asyncio.sleep(1.0)
+        front = [float(r[0]) for _, r, _ in planner.inputs[-10:]]
+        assert 0.0 not in front, front  # never "nothing detected"
+        if expect == "at_min":
+            assert front[-1] == pytest.approx(0.1)  # an obstacle at the minimum range
+        else:
+            # refused: the sensor is stale, the planner is not stepped, the vehicle holds
+            assert len(planner.inputs) == n_before
+            assert svc.last_verdict.verdict.value == "hold"
+            assert any(t.startswith("sensor 0 refused") for t in pilot_texts(ap))
+            assert svc.counter_values()["input.rejected_sensor_limits"] > 0

@@ -83,10 +83,11 @@ def test_distance_sensor_mapping_units_and_nothing_detected() -> None:
     assert t.update(dist(1, 0, 250), now)
     r = t.range_vector(now, 0.5)
     assert r[0] == 2.5 and math.isnan(r[1]) and math.isnan(r[2])  # missing = NaN
-    for cm, name in ((0, "range_none"), (65535, "range_none"), (5, "range_below_min"),
-                     (1000, "range_at_max"), (1500, "range_at_max")):  # fmt: skip
+    for cm, name, want in ((0, "range_none", 0.0), (65535, "range_none", 0.0),
+                           (5, "range_below_min", 0.1),  # too close to measure: at the min
+                           (1000, "range_at_max", 0.0), (1500, "range_at_max", 0.0)):  # fmt: skip
         t.update(dist(0, 0, cm), now)
-        assert t.range_vector(now, 0.5)[0] == 0.0  # fresh "nothing detected"
+        assert t.range_vector(now, 0.5)[0] == want  # fresh "nothing" (0.0) or the minimum
         assert t.counters[name] >= 1
     assert math.isnan(t.range_vector(now + 0.6, 0.5)[0])  # stale = NaN
     assert t.stale_sensors(now, 0.5) == [1, 2]

@@ -210,6 +210,7 @@ class Service:
         self._build_gen = 0
         self._build_task: asyncio.Task[Any] | None = None
         self._route_error = ""
+        self._built_h_d = self.params.h_d_m
         self._shift = np.zeros(3)
         """Sum of the accepted position jumps: planner frame = estimate - shift (ENU m)."""
         self._last_planner_xd: FloatArray | None = None
@@ -409,6 +410,10 @@ class Service:
             self._on_autopilot_heartbeat(t_rx)
         reboots, jumps = self.tel.reboots, self.tel.jumps_accepted
         self.tel.update(msg, t_rx)
+        if self.tel.notices:
+            for text in self.tel.notices:
+                self._say(text, Severity.ERROR)
+            self.tel.notices.clear()
         if self.tel.reboots != reboots:
             log.warning("autopilot time went backwards: reboot? reconfiguring")
             self._reconfigure.set()
@@ -893,14 +898,17 @@ class Service:
         self.planner = None
         self._build_gen += 1
         gen = self._build_gen
+        self._built_h_d = self.params.h_d_m
         self._seg_start = here.copy()
         self._planner_t = None
         self.last_setpoint = None  # X_d starts at the vehicle: nothing to compare on resume
         self._last_planner_xd = None
 
+        params = self.params
+
         def build() -> tuple[PlannerLike, Route]:
             route = Route(points, heading, arrival_rad)
-            return self.planner_factory(self.params, self.sensors, route, start), route
+            return self.planner_factory(params, self.sensors, route, start), route
 
         if self.sim_time:
             # lockstep: the simulator waits for us, so building here costs no real-time cycle
@@ -930,6 +938,8 @@ class Service:
             return
         self.planner = planner
         self._route_error = ""
+        if self.params.h_d_m != self._built_h_d:  # changed while it was being built
+            planner.set_desired_height(self.params.h_d_m)
         if self.flight_log is not None:
             self.flight_log.write(
                 {

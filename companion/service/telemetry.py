@@ -8,9 +8,12 @@ edge: centimetres to metres, degrees*1e7 to degrees, millimetres to metres.
 
 DISTANCE_SENSOR readings are mapped to the sensor table by id, and the message's orientation
 must agree with the configured one (within 5 degrees; MAV_SENSOR_ROTATION_CUSTOM is checked
-through its quaternion when one is given). A reading of 0, below the minimum, at/over the
-maximum or 65535 means "nothing detected" and is stored as 0.0: a fresh reading of nothing is
-valid data. NaN in `range_vector` is reserved for a missing or stale reading.
+through its quaternion when one is given), and so must its min/max_distance (`limits_problem`):
+a message whose limits contradict the configured ones is refused and reported, never used.
+A reading of 0, at/over the configured maximum or 65535 means "nothing detected" and is stored
+as 0.0: a fresh reading of nothing is valid data. A reading below the configured minimum is
+"too close to measure" and is stored as the minimum range (something is there, at most that
+far). NaN in `range_vector` is reserved for a missing or stale reading.
 
 time_boot_ms ordering: an older stamp than the last one (reordered or duplicated datagrams)
 is dropped; a jump back of more than REBOOT_BACKSTEP_MS is an autopilot reboot, which resets
@@ -49,6 +52,31 @@ UINT16_MAX = 65535
 MAV_AUTOPILOT_INVALID = 8
 MAV_TYPE_GCS = 6
 MAV_TYPE_ONBOARD_CONTROLLER = 18
+
+
+LIMIT_TOLERANCE_M = 0.05
+"""How far a DISTANCE_SENSOR's own min/max may differ from the configured ones (cm rounding,
+float truncation) before the two are taken to contradict each other."""
+
+
+def limits_problem(min_cm: int, max_cm: int, min_m: float, max_m: float) -> str:
+    """Why a DISTANCE_SENSOR's min/max_distance (cm) contradict the configured range
+    [min_m, max_m), or "" if they do not. 0/0 (or a max of 0 or 65535) means "not given".
+
+    Refused: min >= max; a sender minimum above the configured one (readings between them
+    would be misread); a sender maximum below the configured one (its "nothing" would be taken
+    as free space out to the configured maximum). A wider sender range is fine: the configured
+    one is what the planner uses."""
+    if max_cm in (0, UINT16_MAX):
+        return ""
+    if min_cm >= max_cm:
+        return f"message limits {min_cm}-{max_cm} cm are not a range"
+    if min_cm * 0.01 > min_m + LIMIT_TOLERANCE_M or max_cm * 0.01 < max_m - LIMIT_TOLERANCE_M:
+        return (
+            f"message limits {min_cm * 0.01:g}-{max_cm * 0.01:g} m "
+            f"differ from the configured {min_m:g}-{max_m:g} m"
+        )
+    return ""
 
 
 @dataclass(frozen=True, slots=True)
@@ -174,6 +202,9 @@ class Telemetry:
         self._boresight_cache: dict[int, FloatArray | None] = {}
         self._quaternion_cache: dict[tuple[float, ...], FloatArray | None] = {}
         self.reboots = 0
+        self.notices: list[str] = []
+        """Faults for the pilot (sensor limits refused, ...): the service drains and says them."""
+        self._limit_problem: dict[int, str] = {}
         self.reset()
 
     def reset(self) -> None:
@@ -365,15 +396,23 @@ class Telemetry:
         spec = self.sensors.specs[index]
         lo, hi = spec.min_range_m, spec.max_range_m
         mn, mx, cur = int(msg.min_distance), int(msg.max_distance), int(msg.current_distance)
-        if 0 < mx < UINT16_MAX and mn < mx:  # the sender's own limits, when it gives sane ones
-            lo, hi = max(lo, mn * 0.01), min(hi, mx * 0.01)
+        problem = limits_problem(mn, mx, lo, hi)
+        if problem:
+            # The sender's limits contradict the configured ones: one of the two is wrong,
+            # and a reading cannot be trusted to mean what the planner will take it for.
+            if self._limit_problem.get(index) != problem:
+                self._limit_problem[index] = problem
+                self.notices.append(f"sensor {spec.sensor_id} refused: {problem}")
+            return self._reject("sensor_limits", f"sensor {spec.sensor_id}: {problem}")
+        self._limit_problem.pop(index, None)
         d = cur * 0.01
         if cur == 0 or cur == UINT16_MAX:
             self._count("range_none", detail=f" (sensor {spec.sensor_id}: {cur} cm)")
             d = 0.0
         elif d < lo:
+            # too close to measure, not "nothing": something is at most at the minimum range
             self._count("range_below_min", detail=f" (sensor {spec.sensor_id}: {cur} cm)")
-            d = 0.0
+            d = lo if lo > 0 else d
         elif d >= hi:
             self._count("range_at_max", detail=f" (sensor {spec.sensor_id}: {cur} cm)")
             d = 0.0
