@@ -91,6 +91,11 @@ class FakeAutopilot:
     telemetry_enabled: bool = True
     sensors_enabled: set[int] | None = None
     command_results: dict[int, int] = field(default_factory=dict)
+    result_script: dict[int, list[int]] = field(default_factory=dict)
+    """Per command: results used first, one per COMMAND_LONG (-1 = no answer), then
+    command_results."""
+    refusal_text: str | None = None
+    """Sent as STATUSTEXT (CRITICAL, chunked like ArduPilot's) with each refused command."""
     mission: list[tuple[float, float]] = field(default_factory=list)
     follow_setpoints: bool = False
     answer_timesync: bool = True
@@ -230,7 +235,12 @@ class FakeAutopilot:
     def _on_command_long(self, msg: Any) -> None:
         self.commands.append(msg)
         cmd = int(msg.command)
-        result = self.command_results.get(cmd, 0)
+        script = self.result_script.get(cmd)
+        result = script.pop(0) if script else self.command_results.get(cmd, 0)
+        if result != 0 and self.refusal_text is not None:
+            raw = self.refusal_text.encode()
+            for seq, i in enumerate(range(0, len(raw), 50)):
+                self.send(mavlink2.MAVLink_statustext_message(2, raw[i : i + 50], 7, seq))
         if result == -1:
             return  # never answer
         self._ack(msg, result)

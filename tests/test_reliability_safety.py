@@ -189,9 +189,11 @@ async def test_planner_built_off_the_event_loop() -> None:
     ],
     ids=["msg_min_300cm", "below_configured_min", "msg_limits_1_2cm"],
 )
-async def test_close_obstacle_never_free_space(cm: int, limits: tuple[int, int], expect: str) -> None:
+async def test_close_obstacle_never_free_space(
+    cm: int, limits: tuple[int, int], expect: str
+) -> None:
     box = PlannerBox()
-    async with over_udp(factory=box, ranges_cm={0: 800, 1: 700, 2: 700}) as (svc, ap, task):
+    async with over_udp(factory=box, ranges_cm={0: 800, 1: 700, 2: 700}) as (svc, ap, _):
         await until(lambda: svc.configured)
         ap.set_mode(GUIDED)
         await until(lambda: bool(box.made) and len(box.made[-1].inputs) >= 5)
@@ -211,3 +213,135 @@ async def test_close_obstacle_never_free_space(cm: int, limits: tuple[int, int],
             assert svc.last_verdict.verdict.value == "hold"
             assert any(t.startswith("sensor 0 refused") for t in pilot_texts(ap))
             assert svc.counter_values()["input.rejected_sensor_limits"] > 0
+
+
+# === 2, 8, 9 and refusals: auto start ======================================================
+
+PX4_POSCTL = 3 << 16
+PX4_RTL = (4 << 16) | (5 << 24)
+STABILIZE = 0
+
+
+def auto_cfg(**control: Any) -> ServiceConfig:
+    auto = {"enabled": True, "arm_timeout_s": 20.0, "arm_retry_s": 0.2, "prestream_s": 0.3}
+    auto.update(control.pop("auto_start", {}))
+    return make_config(control={"auto_start": auto, **control})
+
+
+def on_ground(**kw: Any) -> dict[str, Any]:
+    return {"armed": False, "alt_amsl": HOME[2], **kw}
+
+
+def commands(ap: FakeAutopilot, cmd: int) -> list[Any]:
+    return [m for m in ap.commands if int(m.command) == cmd]
+
+
+def offboard_requests(ap: FakeAutopilot) -> list[Any]:
+    return [m for m in commands(ap, 176) if int(m.param2) in (4, 6)]
+
+
+@pytest.mark.parametrize("kind", ["ardupilot", "px4"])
+@pytest.mark.parametrize("phase", ["arming", "climb"])
+async def test_auto_start_aborts_on_a_mode_change_by_anyone_else(kind: str, phase: str) -> None:
+    """A ground station changes the mode (RTL) while auto start retries the arm command or
+    while the vehicle climbs: auto start stops at once: no more arm, take-off or mode
+    commands, never OFFBOARD/GUIDED afterwards, never a take-over."""
+    rtl = PX4_RTL if kind == "px4" else RTL
+    script = {400: [1] * 1000} if phase == "arming" else {}
+    async with over_udp(auto_cfg(), kind=kind, result_script=script, **on_ground()) as (
+        svc,
+        ap,
+        _,
+    ):
+        if phase == "arming":
+            await until(lambda: len(commands(ap, 400)) >= 2)
+        else:
+            await until(lambda: ap.climb_to is not None and ap.alt_amsl > HOME[2] + 0.5)
+        n_cmds = len(ap.commands)
+        ap.set_mode(rtl)
+        await until(lambda: svc.counters["auto_start_aborted"] >= 1)
+        await asyncio.sleep(max(1.5, 3 * 0.3))  # PX4 would ask for OFFBOARD 0.3 s after climbing
+        later = ap.commands[n_cmds:]
+        assert not [m for m in later if int(m.command) in (400, 22, 176)], later
+        assert not svc.ownership.engaged and ap.custom_mode == rtl
+        assert any("auto start aborted: mode changed to" in t for t in pilot_texts(ap))
+
+
+async def test_auto_start_waits_for_every_required_sensor_before_arming() -> None:
+    async with over_udp(auto_cfg(), sensors_enabled={1, 2}, **on_ground()) as (svc, ap, _):
+        await until(lambda: svc.configured)
+        await until(lambda: any("waiting, sensor 0 (front) stale" in t for t in pilot_texts(ap)))
+        await asyncio.sleep(1.0)
+        assert not commands(ap, 400) and not commands(ap, 176)  # neither armed nor GUIDED
+        ap.sensors_enabled = None  # the front sensor starts reporting
+        await until(lambda: bool(commands(ap, 400)))
+        await until(lambda: svc.ownership.engaged, 15.0)
+
+
+async def test_hold_before_take_over_is_announced(caplog: pytest.LogCaptureFixture) -> None:
+    """The pilot hands over while a required sensor has never reported: the take-over says
+    it holds, and why (not just "flying route")."""
+    async with over_udp(sensors_enabled={1, 2}) as (svc, ap, _):
+        await until(lambda: svc.configured)
+        await until(lambda: svc.last_verdict.verdict.value == "hold")
+        await asyncio.sleep(0.5)  # the hold began well before the hand-over
+        ap.set_mode(GUIDED)
+        await until(lambda: svc.ownership.engaged)
+        await until(lambda: "HOLD: sensor 0 (front) stale" in pilot_texts(ap))
+        assert svc.health is Health.CRITICAL
+
+
+async def test_auto_start_with_an_empty_mission_does_not_take_off(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    import companion.service.service as service_mod
+
+    monkeypatch.setattr(service_mod, "MISSION_RETRY_S", 0.5)
+    cfg = make_config(
+        route={"source": "mission", "points": None},
+        control={"auto_start": {"enabled": True, "arm_retry_s": 0.2, "prestream_s": 0.3}},
+    )
+    async with over_udp(cfg, mission=[], **on_ground()) as (svc, ap, _):
+        await until(lambda: any("no route (mission empty)" in t for t in pilot_texts(ap)))
+        await asyncio.sleep(1.5)  # a few downloads later: still nothing to fly
+        assert not commands(ap, 400) and not commands(ap, 22) and not commands(ap, 176)
+        assert "route complete: holding" not in pilot_texts(ap)
+        ap.mission = [(HOME[0] + 0.0003, HOME[1])]  # a waypoint ~33 m north appears
+        await until(lambda: bool(commands(ap, 400)), 10.0)
+
+
+LONG_REASON = "PreArm: Rangefinder 1: No Data; Compass not calibrated; Battery 1 below minimum"
+
+
+async def test_auto_start_retries_every_refusal_and_shows_the_full_reason(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    """TEMPORARILY_REJECTED, FAILED, DENIED and no answer, each with a pre-arm STATUSTEXT:
+    retried until accepted; the autopilot's whole reason is in the log."""
+    caplog.set_level(logging.INFO, logger="companion")
+    script = {400: [1, 4, 2, -1, -1, -1, -1]}
+    async with over_udp(
+        auto_cfg(), result_script=script, refusal_text=LONG_REASON, **on_ground()
+    ) as (svc, ap, _):
+        await until(lambda: svc.ownership.engaged, 25.0)
+        assert len(commands(ap, 400)) >= 5
+        for name in ("TEMPORARILY_REJECTED", "FAILED", "DENIED", "no ack"):
+            assert name in caplog.text
+        assert LONG_REASON in caplog.text  # not cut at 50 characters
+
+
+async def test_auto_start_gives_up_at_arm_timeout_with_the_full_reason() -> None:
+    cfg = auto_cfg(auto_start={"arm_timeout_s": 1.5})
+    async with over_udp(cfg, command_results={400: 2}, refusal_text=LONG_REASON, **on_ground()) as (
+        svc,
+        ap,
+        _,
+    ):
+        await until(lambda: svc.counters["auto_start_failed"] >= 1, 15.0)
+        await asyncio.sleep(0.3)
+        chunks = [r.msg for r in ap.of_type("STATUSTEXT")]
+        failed = [m for m in chunks if m.text.startswith("auto start failed")]
+        assert failed
+        joined = "".join(m.text for m in chunks if m.id == failed[0].id)
+        assert "DENIED" in joined and LONG_REASON in joined
+        assert not svc.ownership.engaged

@@ -37,7 +37,13 @@ from typing import Any, Protocol
 
 import numpy as np
 
-from companion.config import ConfigError, ServiceConfig, load_config
+from companion.config import (
+    ConfigError,
+    ServiceConfig,
+    latlon_points_xy,
+    load_config,
+    route_problem,
+)
 from companion.geo import GeoPoint, LocalFrame
 from companion.planner.frames import attitude_ned_to_enu, wrap_pi
 from companion.planner.params import PlannerParams
@@ -72,7 +78,7 @@ from companion.service.modes import (
 from companion.service.notify import SystemdNotifier
 from companion.service.setpoints import SetpointFrame, position_target
 from companion.service.signing import SigningKeyError, SigningState, load_key, timestamp_now
-from companion.service.statustext import Severity, StatusTexts, statustext_message
+from companion.service.statustext import Severity, StatusTexts, statustext_messages
 from companion.service.telemetry import Telemetry
 
 log = logging.getLogger("companion.service")
@@ -85,6 +91,8 @@ STREAM_IDS = {
 }
 STREAMS_LOST_S = 2.0
 """Heartbeats without position this long: request the message rates again."""
+MISSION_RETRY_S = 5.0
+"""Auto start with an empty mission: download it again this often."""
 MIN_BASE_POINT_SPACING_M = 0.5
 """Base points closer than this to the vehicle when it takes over are taken as passed."""
 
@@ -218,6 +226,12 @@ class Service:
         self._priming = False
         self._auto_busy = False
         self._auto_done = False
+        self._auto_task: asyncio.Task[None] | None = None
+        self._auto_allowed: set[str] | None = None
+        self._auto_armed = False
+        self._ap_text: tuple[float, str] | None = None
+        self._ap_chunks: dict[int, dict[int, str]] = {}
+        """The autopilot's latest STATUSTEXT of WARNING or worse: (time.monotonic, text)."""
         self._planner_t: float | None = None
         self._next_cycle_t: float | None = None
         self._last_cycle_wall: float | None = None
@@ -229,6 +243,7 @@ class Service:
         self._tasks: list[asyncio.Task[Any]] = []
         self._fatal: BaseException | None = None
         self._counter_snapshot: dict[str, int] = {}
+        self._text_id = 0
 
     # === public ============================================================================
 
@@ -419,8 +434,28 @@ class Service:
             self._reconfigure.set()
         if self.tel.jumps_accepted != jumps:
             self._position_jumped()
-        if mtype == "HEARTBEAT" and self.ownership.engaged:
-            self._update_ownership(self.clock.now(), allow_engage=False)
+        if mtype == "HEARTBEAT":
+            if self.ownership.engaged:
+                self._update_ownership(self.clock.now(), allow_engage=False)
+            self._watch_auto_start()
+        elif mtype == "STATUSTEXT" and int(msg.severity) <= Severity.WARNING:
+            self._autopilot_text(msg)
+
+    def _autopilot_text(self, msg: MAVLinkMessage) -> None:
+        """Keep the autopilot's latest warning, its chunks (MAVLink 2 id/chunk_seq) joined."""
+        raw = msg.text
+        text = (raw if isinstance(raw, str) else bytes(raw).decode("utf-8", "replace")).rstrip(
+            "\x00"
+        )
+        text_id, seq = int(getattr(msg, "id", 0)), int(getattr(msg, "chunk_seq", 0))
+        if text_id:
+            parts = self._ap_chunks.setdefault(text_id, {})
+            if len(self._ap_chunks) > 8:  # bounded: keep the newest few
+                self._ap_chunks.pop(next(iter(self._ap_chunks)))
+            if seq < 16:
+                parts[seq] = text
+            text = "".join(parts[i] for i in sorted(parts))
+        self._ap_text = (time.monotonic(), text)
 
     def _position_jumped(self) -> None:
         """The position estimate jumped for good (estimator reset). The planner keeps its
@@ -553,7 +588,7 @@ class Service:
                 failed.append(name)
                 log.warning("message interval for %s: %s", name, exc)
         if failed:
-            self._say(f"rate request failed: {','.join(failed)}"[:50], Severity.WARNING)
+            self._say(f"rate request failed: {','.join(failed)}", Severity.WARNING)
         home_id = STREAM_IDS["HOME_POSITION"]
         said = False
         while True:
@@ -572,16 +607,28 @@ class Service:
                 self._say("waiting for home and position")
         self._update_frame()
         if self.cfg.route.source == "mission":
-            items = await download_mission(
-                self.conn, self.cfg.autopilot.command_timeout_s, self.cfg.autopilot.command_retries
-            )
-            assert self.kind is not None
-            self._mission_geo = mission_waypoints(items, self.kind)
-            n = len(self._mission_geo)
-            if n == 0:
+            await self._load_mission()
+        self._update_frame()
+
+    async def _load_mission(self, quiet: bool = False) -> None:
+        """Download the autopilot's mission; a mission that breaks the route bounds counts
+        as no mission (said, never flown). quiet: say nothing when it is still empty."""
+        items = await download_mission(
+            self.conn, self.cfg.autopilot.command_timeout_s, self.cfg.autopilot.command_retries
+        )
+        assert self.kind is not None
+        geo = mission_waypoints(items, self.kind)
+        problem = route_problem(latlon_points_xy(geo), origin_is_home=False) if geo else ""
+        if problem:
+            self._say(f"mission refused: {problem}", Severity.ERROR)
+            geo = []
+        self._mission_geo = geo
+        n = len(geo)
+        if n == 0:
+            if not quiet:
                 self._say("mission has no waypoints", Severity.WARNING)
-            else:
-                self._say(f"mission: {n} waypoints")
+        else:
+            self._say(f"mission: {n} waypoints")
         self._update_frame()
 
     async def _wait_for(self, pred: Callable[[], bool], timeout_s: float) -> bool:
@@ -603,7 +650,98 @@ class Service:
             await asyncio.sleep(0.001)
 
     async def _auto_start(self) -> None:
-        """Arm, take off and hand over to the route; stops if the pilot changes the mode."""
+        """Run auto start as a task that a mode change by anyone else cancels at once."""
+        task = asyncio.create_task(self._auto_start_steps(), name="auto-start")
+        self._auto_task = task
+        try:
+            await asyncio.wait({task})
+        finally:
+            if not task.done():  # we are being cancelled (shutdown): so is it
+                task.cancel()
+            self._auto_task = None
+            self._auto_allowed = None
+            self._auto_busy = False
+            self._priming = False
+        if task.cancelled():
+            self.counters["auto_start_aborted"] += 1
+            return
+        exc = task.exception()
+        if exc is not None:
+            raise exc
+
+    def _allow_modes(self, *names: str) -> None:
+        """Auto start: the modes the vehicle may be in now; any other aborts it."""
+        self._auto_allowed = set(names)
+
+    def _current_mode(self) -> str | None:
+        hb = self.tel.heartbeat
+        if hb is None or self.kind is None:
+            return None
+        return mode_name(self.kind, self.vehicle_type, hb.base_mode, hb.custom_mode)
+
+    def _watch_auto_start(self) -> None:
+        """On each autopilot heartbeat during auto start: a mode we did not ask for (a pilot,
+        a ground station, a failsafe) or a disarm after arming ends auto start at once."""
+        task, allowed = self._auto_task, self._auto_allowed
+        if task is None or task.done() or allowed is None:
+            return
+        hb = self.tel.heartbeat
+        mode = self._current_mode()
+        if hb is None or mode is None:
+            return
+        why = ""
+        if mode not in allowed:
+            why = f"mode changed to {mode}"
+        elif self._auto_armed and not hb.armed:
+            why = "disarmed"
+        if why:
+            self._auto_allowed = None
+            task.cancel()
+            self._say(f"auto start aborted: {why}", Severity.WARNING)
+
+    async def _wait_ready_to_arm(self, deadline: float) -> None:
+        """Until every required input (heartbeat, position, attitude, each required range
+        sensor) is fresh, saying once what is missing; CommandError at the deadline."""
+        said = ""
+        while True:
+            a = assess(self.clock.now(), self.tel, self.limits, self.required_sensors)
+            if a.verdict is Verdict.RUN:
+                return
+            if time.monotonic() >= deadline:
+                raise CommandError(400, f"not arming: {a.reason}")
+            if a.reason != said:
+                said = a.reason
+                self._say(f"auto start: waiting, {a.reason}")
+            await asyncio.sleep(0.05)
+
+    async def _wait_for_route(self) -> bool:
+        """Until there is a base point to fly to (farther than MIN_BASE_POINT_SPACING_M from
+        the vehicle), saying so once; a mission is downloaded again every MISSION_RETRY_S.
+        False when the configured route has nothing to fly (it will not change)."""
+        said = False
+        while True:
+            self._update_frame()
+            state = self._vehicle_state()
+            pts = self.route_source_points
+            if state is not None and pts is not None and len(pts):
+                gaps = np.hypot(*(pts - state.position_enu[:2]).T)
+                if float(np.max(gaps)) >= MIN_BASE_POINT_SPACING_M:
+                    return True
+            if not said:
+                said = True
+                what = "mission empty" if self.cfg.route.source == "mission" else "at the end"
+                self._say(f"auto start: no route ({what}): not taking off", Severity.WARNING)
+            if self.cfg.route.source != "mission":
+                return False
+            await asyncio.sleep(MISSION_RETRY_S)
+            try:
+                await self._load_mission(quiet=True)
+            except MissionError as exc:
+                log.info("mission download: %s", exc)
+
+    async def _auto_start_steps(self) -> None:
+        """Arm, take off and hand over to the route. Refusals (denied, pre-arm checks, no
+        answer) are retried until arm_timeout_s; the autopilot's reason is shown in full."""
         assert self.kind is not None
         a = self.cfg.control.auto_start
         alt = a.takeoff_alt_m if a.takeoff_alt_m is not None else self.params.h_d_m
@@ -611,26 +749,41 @@ class Service:
         if hb is not None and hb.armed:
             self._say("auto start: already armed, waiting for pilot")
             return
+        initial = self._current_mode()
+        if initial is None:
+            return
         self._auto_busy = True
-        self._say("auto start")
+        self._auto_armed = False
+        self._allow_modes(initial)
+        deadline = time.monotonic() + a.arm_timeout_s
         try:
+            if not await self._wait_for_route():
+                return
+            self._say("auto start")
+            await self._wait_ready_to_arm(deadline)
             if self.kind is AutopilotKind.ARDUPILOT:
                 # GUIDED is refused until the autopilot has a position estimate: retry.
                 guided = set_mode_params(self.kind, "guided", self.vehicle_type)
+                self._allow_modes(initial, "GUIDED")
                 await self._with_retries(
-                    "GUIDED",
-                    lambda: self.commands.set_mode(guided),
-                    a.arm_timeout_s,
-                    a.arm_retry_s,
+                    "GUIDED", lambda: self.commands.set_mode(guided), deadline, a.arm_retry_s
                 )
                 if not await self._wait_for(self._guided, 5.0):
                     raise CommandError(176, "mode did not change to GUIDED")
-            await self._arm_with_retries(a.arm_timeout_s, a.arm_retry_s)
-            if self.kind is AutopilotKind.ARDUPILOT and not self._guided():
-                raise CommandError(176, "mode changed during auto start")
+                self._allow_modes("GUIDED")
+            await self._wait_ready_to_arm(deadline)
+            await self._with_retries(
+                "arming", lambda: self.commands.arm(True), deadline, a.arm_retry_s
+            )
+            await self._wait_for(
+                lambda: self.tel.heartbeat is not None and self.tel.heartbeat.armed, 3
+            )
+            self._auto_armed = True
             home = self.tel.home
             assert home is not None
             target = alt if self.kind is AutopilotKind.ARDUPILOT else home.alt_amsl_m + alt
+            if self.kind is AutopilotKind.PX4:
+                self._allow_modes(initial, "AUTO.TAKEOFF", "AUTO.LOITER")
             try:
                 await self.commands.takeoff(target)
             except CommandDeniedError:
@@ -650,21 +803,29 @@ class Service:
             if self.kind is AutopilotKind.PX4:
                 self._priming = True
                 await self._sleep_service_time(a.prestream_s)
+                self._allow_modes(initial, "AUTO.TAKEOFF", "AUTO.LOITER", "OFFBOARD")
                 await self.commands.set_mode(set_mode_params(self.kind, "guided"))
                 if not await self._wait_for(self._guided, 5.0):
                     raise CommandError(176, "mode did not change to OFFBOARD")
         except CommandError as exc:
             self.counters["auto_start_failed"] += 1
-            self._say(f"auto start failed: {exc}"[:50], Severity.ERROR)
-        finally:
-            self._auto_busy = False
-            self._priming = False
+            why = self._autopilot_reason()
+            self._say(f"auto start failed: {exc}" + (f" ({why})" if why else ""), Severity.ERROR)
+
+    def _autopilot_reason(self) -> str:
+        """The autopilot's latest STATUSTEXT of warning or worse in the last 10 s, in full."""
+        if self._ap_text is None:
+            return ""
+        t, text = self._ap_text
+        return text if time.monotonic() - t <= 10.0 else ""
 
     async def _with_retries(
-        self, what: str, command: Callable[[], Awaitable[Any]], timeout_s: float, retry_s: float
+        self, what: str, command: Callable[[], Awaitable[Any]], deadline: float, retry_s: float
     ) -> None:
-        """Send a command until the autopilot accepts it or timeout_s (wall clock) passes."""
-        deadline = time.monotonic() + timeout_s
+        """Send a command until the autopilot accepts it or the (time.monotonic) deadline
+        passes: a refusal (DENIED, FAILED, TEMPORARILY_REJECTED), a pre-arm STATUSTEXT and
+        no answer are all retried; each new reason is logged in full."""
+        last = ""
         while True:
             try:
                 await command()
@@ -672,12 +833,12 @@ class Service:
             except CommandError as exc:
                 if time.monotonic() >= deadline:
                     raise
-                log.info("%s refused (%s); retrying", what, exc)
+                why = self._autopilot_reason()
+                reason = f"{exc}" + (f"; autopilot: {why}" if why else "")
+                if reason != last:
+                    last = reason
+                    log.warning("%s refused (%s); retrying until arm_timeout_s", what, reason)
                 await asyncio.sleep(retry_s)
-
-    async def _arm_with_retries(self, timeout_s: float, retry_s: float) -> None:
-        await self._with_retries("arming", lambda: self.commands.arm(True), timeout_s, retry_s)
-        await self._wait_for(lambda: self.tel.heartbeat is not None and self.tel.heartbeat.armed, 3)
 
     def _climbing(self) -> bool:
         pos = self.tel.position
@@ -708,8 +869,7 @@ class Service:
                     sp = self._hold_setpoint()
                     if sp is not None:
                         self._send_setpoint(sp, now)
-                for sev, text in self.texts.drain(now):
-                    self.conn.send(statustext_message(sev, text))
+                self._send_texts(now)
 
     def _tick(self, now: float) -> None:
         """One cycle at service time `now`: ownership, failsafe, planner or hold, setpoint."""
@@ -751,10 +911,15 @@ class Service:
             self._send_setpoint(sp, now)
         self.health = self._health(verdict.verdict, sp_kind)
         self.last_verdict = verdict
-        for sev, text in self.texts.drain(now):
-            self.conn.send(statustext_message(sev, text))
+        self._send_texts(now)
         if self.flight_log is not None:
             self.flight_log.write(self._cycle_record(now, verdict, result, sp, sp_kind, events))
+
+    def _send_texts(self, now: float) -> None:
+        for sev, text in self.texts.drain(now):
+            self._text_id = self._text_id % 65535 + 1
+            for msg in statustext_messages(sev, text, self._text_id):
+                self.conn.send(msg)
 
     def _check_streams(self, now: float) -> None:
         """Heartbeats but no position for STREAMS_LOST_S: the autopilot forgot our message
@@ -803,6 +968,10 @@ class Service:
         engaging = before is not OwnState.ENGAGED and after is OwnState.ENGAGED
         if engaging and not self._engage(now):
             self.ownership.release("cannot fly: no route")
+        elif engaging and self.failsafe.current.verdict is not Verdict.RUN:
+            # a hold (or stop) that began before the take-over: announced like any other
+            f = self.failsafe.current
+            self._say(f"{f.verdict.value.upper()}: {f.reason}", Severity.CRITICAL)
         if before is OwnState.ENGAGED and after is not OwnState.ENGAGED:
             self.counters["released"] += 1
             self._planner_t = None
@@ -1042,7 +1211,7 @@ class Service:
             try:
                 await self.commands.set_mode(params)
             except CommandError as exc:
-                self._say(f"{action} refused: {exc}"[:50], Severity.ERROR)
+                self._say(f"{action} refused: {exc}", Severity.ERROR)
 
         self._spawn(change(), f"on-finish-{action}")
 
