@@ -251,6 +251,9 @@ class FailsafeConfig(Section):
     after jump_accept_s if it persists, e.g. an EKF reset).
     max_position_jump_m: so is a position this far off the path the reported velocity
     predicts (more after a gap in the data: 5 m/s^2 times its square).
+    max_accepted_jump_m: a jump that persists is accepted as an estimator reset (the plan
+    moves with it) only up to this size; a larger one is a fault: the service stops
+    commanding, says why, and stays stopped until the position is back near the last good one.
     range_median_samples: each range sensor's value is the median of its last this many
     readings ("nothing detected" counting as farthest): a single spike or dropout of one
     reading never reaches the planner, at the cost of (n - 1) / 2 readings of delay. 1: off.
@@ -264,6 +267,7 @@ class FailsafeConfig(Section):
     max_speed_mps: Positive = 40.0
     jump_accept_s: Positive = 1.0
     max_position_jump_m: Positive = 2.0
+    max_accepted_jump_m: Positive = 50.0
     range_median_samples: Annotated[int, Field(ge=1, le=9)] = 3
 
 

@@ -345,3 +345,36 @@ async def test_auto_start_gives_up_at_arm_timeout_with_the_full_reason() -> None
         joined = "".join(m.text for m in chunks if m.id == failed[0].id)
         assert "DENIED" in joined and LONG_REASON in joined
         assert not svc.ownership.engaged
+
+
+# === 7. a bound on accepted position jumps ================================================
+
+
+async def test_position_jump_over_the_limit_stops_and_is_never_accepted() -> None:
+    cfg = make_config(failsafe={"resume_after_s": 0.2, "max_accepted_jump_m": 50.0})
+    async with over_udp(cfg) as (svc, ap, task):
+        await until(lambda: svc.configured)
+        ap.set_mode(GUIDED)
+        await ap.wait_for(lambda: len(ap.setpoints()) >= 10)
+        ap.alt_amsl += 1000.0  # the estimate says 1 km higher, and stays there
+        await until(lambda: svc.counter_values().get("input.rejected_position_jump_fault", 0) > 5)
+        await asyncio.sleep(1.0)
+        n = len(ap.setpoints())
+        await asyncio.sleep(0.5)
+        assert len(ap.setpoints()) == n  # stopped commanding
+        assert not svc._shift.any()  # the plan was not re-based on it
+        assert svc.tel.jumps_accepted == 0
+        assert svc.health is Health.EMERGENCY and not task.done()
+        assert any("position jump of 1000 m over the 50 m limit" in t for t in pilot_texts(ap))
+        ap.alt_amsl -= 1000.0  # the estimate comes back: flying resumes
+        await ap.wait_for(lambda: len(ap.setpoints()) >= n + 5, 5.0)
+
+
+async def test_position_jump_within_the_limit_is_still_accepted() -> None:
+    async with over_udp() as (svc, ap, _):
+        await until(lambda: svc.configured)
+        ap.set_mode(GUIDED)
+        await ap.wait_for(lambda: len(ap.setpoints()) >= 10)
+        ap.alt_amsl += 20.0  # an estimator reset of 20 m
+        await until(lambda: svc.tel.jumps_accepted == 1)
+        assert svc._shift[2] == pytest.approx(20.0, abs=1.0)

@@ -165,6 +165,7 @@ class Service:
             max_speed_mps=fs.max_speed_mps,
             jump_accept_s=fs.jump_accept_s,
             max_jump_m=fs.max_position_jump_m,
+            max_accepted_jump_m=fs.max_accepted_jump_m,
             median_samples=fs.range_median_samples,
         )
         ap = config.autopilot
@@ -1357,6 +1358,7 @@ _PROBLEM_PREFIXES = (
     "input.duplicate",
     "input.time_boot",
     "input.position_jump",
+    "input.rejected_position_jump_fault",
     "link.send_dropped",
     "link.oversized",
     "link.kernel_dropped",

@@ -184,12 +184,16 @@ class Telemetry:
         jump_accept_s: float = 1.0,
         max_jump_m: float = 2.0,
         median_samples: int = 1,
+        max_accepted_jump_m: float = 50.0,
     ) -> None:
         self.sensors = sensors
         self.median_samples = median_samples
         self.max_speed_mps = max_speed_mps
         self.jump_accept_s = jump_accept_s
         self.max_jump_m = max_jump_m
+        self.max_accepted_jump_m = max_accepted_jump_m
+        self.jump_fault = ""
+        """Why a persistent position jump is refused (larger than max_accepted_jump_m)."""
         self.jumps_accepted = 0
         self.last_jump_enu = np.zeros(3)
         """The last accepted jump: the position minus where the reported velocity put it."""
@@ -305,6 +309,17 @@ class Telemetry:
             if t_rx - self._jump_since < self.jump_accept_s:
                 self._last_boot_ms["GLOBAL_POSITION_INT"] = last.time_boot_ms
                 return self._reject("position_jump")
+            size = float(np.linalg.norm(self._jump_ned))
+            if size > self.max_accepted_jump_m:
+                # too big to be an estimator reset the plan can follow: a fault, never accepted
+                self._last_boot_ms["GLOBAL_POSITION_INT"] = last.time_boot_ms
+                if not self.jump_fault:
+                    self.jump_fault = (
+                        f"position jump of {size:.0f} m over the {self.max_accepted_jump_m:g} m limit"
+                    )
+                    self.notices.append(f"{self.jump_fault}: stopped")
+                    log.error("%s: not accepted; stopped", self.jump_fault)
+                return self._reject("position_jump_fault")
             self._count("position_jump_accepted", logging.WARNING)
             n, e, d = (float(v) for v in self._jump_ned)
             self.last_jump_enu = np.array([e, n, -d])
@@ -315,6 +330,7 @@ class Telemetry:
                 t_rx - self._jump_since,
             )
         self._jump_since = None
+        self.jump_fault = ""
         self.position = Position(lat, lon, alt, rel, vel, int(msg.time_boot_ms), t_rx)
         return True
 
