@@ -67,7 +67,12 @@ def test_out_of_order_duplicates_and_reboot() -> None:
 
 
 def test_position_jump_rejected_then_accepted_if_it_persists() -> None:
-    t = Telemetry(make_config().sensor_table(), max_speed_mps=20.0, jump_accept_s=0.5)
+    t = Telemetry(
+        make_config().sensor_table(),
+        max_speed_mps=20.0,
+        jump_accept_s=0.5,
+        max_accepted_jump_m=150.0,
+    )
     t.update(pos(1000, 0.0), 1.0)
     assert t.update(pos(1100, 0.5), 1.1) is not None  # 5 m/s: fine
     assert t.update(pos(1200, 100.0), 1.2) is None  # 1000 m/s: glitch
