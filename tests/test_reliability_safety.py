@@ -378,3 +378,61 @@ async def test_position_jump_within_the_limit_is_still_accepted() -> None:
         ap.alt_amsl += 20.0  # an estimator reset of 20 m
         await until(lambda: svc.tel.jumps_accepted == 1)
         assert svc._shift[2] == pytest.approx(20.0, abs=1.0)
+
+
+# === 6. one forged timestamp neither resets nor stops ======================================
+
+
+def _max_gap(times: list[float]) -> float:
+    return max((b - a for a, b in zip(times, times[1:], strict=False)), default=0.0)
+
+
+@pytest.mark.parametrize("attack", ["attitude_far_future", "position_2_5_s_ahead"])
+async def test_single_forged_timestamp_neither_resets_nor_stops(attack: str) -> None:
+    box = PlannerBox()
+    async with over_udp(factory=box) as (svc, ap, _):
+        ap._boot -= 30.0
+        await until(lambda: svc.configured)
+        ap.set_mode(GUIDED)
+        await ap.wait_for(lambda: len(ap.setpoints()) >= 10)
+        t0 = __import__("time").monotonic()  # the fake stamps receipts with time.monotonic
+        n0 = len(ap.setpoints())
+        for _ in range(3):  # repeated every 0.7 s
+            tb = ap.time_boot_ms()
+            if attack == "attitude_far_future":
+                ap.send(M.MAVLink_attitude_message(0xFFFFFFF0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0))
+            else:
+                ap.send(
+                    M.MAVLink_global_position_int_message(
+                        tb + 2500,
+                        round(ap.lat * 1e7),
+                        round(ap.lon * 1e7),
+                        round(ap.alt_amsl * 1000),
+                        round((ap.alt_amsl - HOME[2]) * 1000),
+                        0,
+                        0,
+                        0,
+                        0,
+                    )
+                )
+            await asyncio.sleep(0.7)
+        await asyncio.sleep(0.5)
+        sp = [r.t for r in ap.setpoints()[n0:]]
+        assert svc.tel.reboots == 0
+        assert svc.counter_values()["input.time_boot_suspect"] >= 3
+        assert len(box.made) == 1  # never restarted
+        assert svc.counters["released"] == 0
+        assert _max_gap(sp) < 0.4, "setpoints stopped"  # 20 Hz: no stop of any length
+        assert sp[-1] - t0 > 2.0
+        later = [r.msg.text for r in ap.of_type("STATUSTEXT") if r.t >= t0]
+        assert not [t for t in later if "STOP" in t or "HOLD" in t], later
+
+
+async def test_a_real_reboot_is_still_recognised(caplog: pytest.LogCaptureFixture) -> None:
+    async with over_udp() as (svc, ap, _):
+        ap._boot -= 30.0
+        await until(lambda: svc.configured)
+        ap._boot = __import__("time").monotonic()  # the autopilot's clock restarts at 0
+        await until(lambda: svc.tel.reboots == 1)
+        assert "reboot? reconfiguring" in caplog.text
+        await until(lambda: svc.configured)

@@ -61,9 +61,15 @@ def test_out_of_order_duplicates_and_reboot() -> None:
     assert t.update(att(4990), 1.1) is None and t.counters["out_of_order"] == 1
     assert t.update(att(5000), 1.2) is None and t.counters["duplicate"] == 1
     t.update(pos(5000), 1.0)
-    assert t.update(att(100), 1.3) == "ATTITUDE"  # 4.9 s back: a reboot
+    # 4.9 s back: one message is no proof of a reboot (it could be forged)
+    assert t.update(att(100), 1.3) is None and t.counters["time_boot_suspect"] == 1
+    assert t.reboots == 0 and t.position is not None
+    # a new boot clock that several messages of two types agree on: a reboot
+    for i in range(3):
+        t.update(att(150 + 50 * i), 1.35 + 0.05 * i)
+        t.update(pos(150 + 50 * i), 1.35 + 0.05 * i)
     assert t.reboots == 1 and t.counters["time_boot_backwards"] == 1
-    assert t.position is None  # everything else forgotten
+    assert t.position is not None and t.position.time_boot_ms >= 150  # the new clock's
 
 
 def test_position_jump_rejected_then_accepted_if_it_persists() -> None:

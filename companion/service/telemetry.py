@@ -16,8 +16,10 @@ as 0.0: a fresh reading of nothing is valid data. A reading below the configured
 far). NaN in `range_vector` is reserved for a missing or stale reading.
 
 time_boot_ms ordering: an older stamp than the last one (reordered or duplicated datagrams)
-is dropped; a jump back of more than REBOOT_BACKSTEP_MS is an autopilot reboot, which resets
-the cache and is reported via `reboots`.
+is dropped. A stamp far ahead of the autopilot's clock, or more than REBOOT_BACKSTEP_MS back,
+is dropped as suspect until several messages of two types agree on the new clock (see
+`_in_order`): then a jump back is an autopilot reboot, which resets the cache and is reported
+via `reboots`, and a jump ahead a re-sync.
 """
 
 from __future__ import annotations
@@ -41,6 +43,26 @@ from companion.service.codec import MAVLinkMessage
 log = logging.getLogger("companion.service.telemetry")
 
 REBOOT_BACKSTEP_MS = 3000
+FUTURE_TOLERANCE_MS = 250.0
+"""A stamp this far ahead of the autopilot's clock as known is suspect (less than the
+position's maximum age, so a forged one accepted inside it cannot starve the loop)."""
+CLOCK_DECAY_MS_PER_S = 1.0
+"""The clock offset follows an autopilot clock slower than ours (1000 ppm) without a re-sync."""
+CLOCK_AGREE_MS = 1000.0
+CLOCK_EVIDENCE_MSGS = 5
+CLOCK_EVIDENCE_TYPES = 2
+
+
+@dataclass(slots=True)
+class _ClockCandidate:
+    """Stamps that disagree with the known clock but agree with each other."""
+
+    offset_ms: float
+    back: bool
+    kinds: set[str]
+    count: int
+
+
 LOG_AT_COUNTS = frozenset(10**k for k in range(19))
 """Counts at which a counter is logged: 1, 10, 100, ..."""
 MEDIAN_GAP_S = 0.5
@@ -222,6 +244,10 @@ class Telemetry:
             deque(maxlen=max(1, self.median_samples)) for _ in range(len(self.sensors))
         ]
         self._last_boot_ms: dict[str, int] = {}
+        self._clock_ref: float | None = None
+        """The autopilot's boot clock minus the receipt clock, milliseconds."""
+        self._clock_ref_t = 0.0
+        self._clock_candidate: _ClockCandidate | None = None
         self._jump_since: float | None = None
         self._jump_dt = 0.0
 
@@ -246,21 +272,62 @@ class Telemetry:
         self._count(f"rejected_{what}", logging.WARNING, detail and f" ({detail})")
         return False
 
-    def _in_order(self, key: str, time_boot_ms: int) -> bool:
-        """False for a stale or duplicate stamp; a big step back is a reboot (accepted)."""
+    def _in_order(self, key: str, time_boot_ms: int, t_rx: float) -> bool:
+        """False for a stale, duplicate or suspect stamp. The autopilot's boot clock is
+        tracked as its offset from the receipt clock (the least-delayed message's, decaying
+        CLOCK_DECAY_MS_PER_S): a stamp more than FUTURE_TOLERANCE_MS ahead of it, or more than
+        REBOOT_BACKSTEP_MS behind the last stamp of its kind, is held as evidence of a new
+        clock and dropped; only CLOCK_EVIDENCE_MSGS such stamps of CLOCK_EVIDENCE_TYPES
+        message types agreeing with each other, with no stamp of the old clock among them,
+        change the clock (back: a reboot, which resets the cache; ahead: a re-sync). One
+        forged packet can neither reset the cache nor poison the ordering."""
         if time_boot_ms == 0:  # some senders do not stamp
             return True
+        off = time_boot_ms - t_rx * 1000.0
+        ref = self._clock_ref
         last = self._last_boot_ms.get(key)
+        if ref is not None:
+            ref = max(ref - CLOCK_DECAY_MS_PER_S * max(t_rx - self._clock_ref_t, 0.0), -1e18)
+        ahead = ref is not None and off > ref + FUTURE_TOLERANCE_MS
+        back = last is not None and last - time_boot_ms > REBOOT_BACKSTEP_MS
+        if ahead or back:
+            return self._clock_evidence(key, time_boot_ms, off, t_rx, back)
+        self._clock_candidate = None
+        if ref is None or off > ref:
+            ref = off
+        self._clock_ref, self._clock_ref_t = ref, t_rx
         if last is not None and time_boot_ms <= last:
-            if last - time_boot_ms > REBOOT_BACKSTEP_MS:
-                self._count("time_boot_backwards", logging.WARNING, f" ({key})")
-                self.reboots += 1
-                counters, reboots = self.counters, self.reboots
-                self.reset()
-                self.counters, self.reboots = counters, reboots
-            else:
-                self._count("out_of_order" if time_boot_ms < last else "duplicate")
-                return False
+            self._count("out_of_order" if time_boot_ms < last else "duplicate")
+            return False
+        self._last_boot_ms[key] = time_boot_ms
+        return True
+
+    def _clock_evidence(
+        self, key: str, time_boot_ms: int, off: float, t_rx: float, back: bool
+    ) -> bool:
+        kind = key.split(".")[0]
+        c = self._clock_candidate
+        if c is None or c.back != back or abs(off - c.offset_ms) > CLOCK_AGREE_MS:
+            c = self._clock_candidate = _ClockCandidate(off, back, {kind}, 0)
+        c.kinds.add(kind)
+        c.count += 1
+        c.offset_ms = max(c.offset_ms, off)
+        if c.count < CLOCK_EVIDENCE_MSGS or len(c.kinds) < CLOCK_EVIDENCE_TYPES:
+            self._count(
+                "time_boot_suspect", logging.WARNING, f" ({key} {'back' if back else 'ahead'})"
+            )
+            return False
+        self._clock_candidate = None
+        if back:
+            self._count("time_boot_backwards", logging.WARNING, f" ({key})")
+            self.reboots += 1
+            counters, reboots = self.counters, self.reboots
+            self.reset()
+            self.counters, self.reboots = counters, reboots
+        else:
+            self._count("time_boot_resync", logging.WARNING, f" ({key})")
+            self._last_boot_ms.clear()
+        self._clock_ref, self._clock_ref_t = c.offset_ms, t_rx
         self._last_boot_ms[key] = time_boot_ms
         return True
 
@@ -284,7 +351,7 @@ class Telemetry:
             return self._reject("attitude_nonfinite", f"roll {r} pitch {p} yaw {y}")
         if abs(r) > math.pi + 1e-3 or abs(p) > math.pi / 2 + 1e-3 or abs(y) > 2 * math.pi + 1e-3:
             return self._reject("attitude_range", f"roll {r} pitch {p} yaw {y}")
-        if not self._in_order("ATTITUDE", int(msg.time_boot_ms)):
+        if not self._in_order("ATTITUDE", int(msg.time_boot_ms), t_rx):
             return False
         self.attitude = Attitude(r, p, y, int(msg.time_boot_ms), t_rx)
         return True
@@ -296,7 +363,7 @@ class Telemetry:
             -1_000.0 <= alt <= 50_000.0 and -10_000.0 <= rel <= 50_000.0
         ):
             return self._reject("position_range", f"lat {lat} lon {lon} alt {alt} rel {rel}")
-        if not self._in_order("GLOBAL_POSITION_INT", int(msg.time_boot_ms)):
+        if not self._in_order("GLOBAL_POSITION_INT", int(msg.time_boot_ms), t_rx):
             return False
         vel = (msg.vx * 0.01, msg.vy * 0.01, msg.vz * 0.01)
         last = self.position
@@ -314,9 +381,7 @@ class Telemetry:
                 # too big to be an estimator reset the plan can follow: a fault, never accepted
                 self._last_boot_ms["GLOBAL_POSITION_INT"] = last.time_boot_ms
                 if not self.jump_fault:
-                    self.jump_fault = (
-                        f"position jump of {size:.0f} m over the {self.max_accepted_jump_m:g} m limit"
-                    )
+                    self.jump_fault = f"position jump of {size:.0f} m over the {self.max_accepted_jump_m:g} m limit"
                     self.notices.append(f"{self.jump_fault}: stopped")
                     log.error("%s: not accepted; stopped", self.jump_fault)
                 return self._reject("position_jump_fault")
@@ -407,7 +472,7 @@ class Telemetry:
             return self._reject(
                 "sensor_orientation_mismatch", f"id {int(msg.id)} orientation {orientation}"
             )
-        if not self._in_order(f"DISTANCE_SENSOR.{index}", int(msg.time_boot_ms)):
+        if not self._in_order(f"DISTANCE_SENSOR.{index}", int(msg.time_boot_ms), t_rx):
             return False
         spec = self.sensors.specs[index]
         lo, hi = spec.min_range_m, spec.max_range_m
