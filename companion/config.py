@@ -90,6 +90,11 @@ class AutopilotConfig(Section):
     """`autopilot:` which autopilot to fly and how to talk to it.
 
     type: "auto" detects ArduPilot or PX4 from the heartbeat.
+    system_id: "auto" flies the only autopilot heard: after its first heartbeat the service
+        listens auto_id_listen_s for others; with more than one it chooses none (an error
+        says which were heard) and waits for system_id to be set. Once chosen it never
+        switches; another autopilot heard later is reported and no take-over (nor auto
+        start) happens until system_id is set.
     setpoint_frame: "auto" = relative altitude (6) on ArduPilot, global AMSL (5) on PX4,
         whose frame 6 applies the home/origin altitude difference with the wrong sign.
         Terrain frames are not offered: ArduCopter rejects them with velocity.
@@ -97,6 +102,7 @@ class AutopilotConfig(Section):
 
     type: Literal["auto", "ardupilot", "px4"] = "auto"
     system_id: SystemId | Literal["auto"] = "auto"
+    auto_id_listen_s: Annotated[float, Field(ge=0, le=30)] = 1.5
     component_id: ComponentId = 1
     heartbeat_timeout_s: Annotated[float, Field(gt=0, le=60)] = 3.0
     command_timeout_s: Annotated[float, Field(gt=0, le=30)] = 1.0

@@ -44,7 +44,11 @@ def make_config(**sections: Any) -> ServiceConfig:
     """A test config: fast timeouts, three sensors, a short route; override by section."""
     data: dict[str, Any] = {
         "link": {"connection": "udpin:127.0.0.1:0"},
-        "autopilot": {"heartbeat_timeout_s": 0.6, "command_timeout_s": 0.3},
+        "autopilot": {
+            "heartbeat_timeout_s": 0.6,
+            "command_timeout_s": 0.3,
+            "auto_id_listen_s": 0.3,
+        },
         "control": {"rate_hz": 20.0, "min_engage_height_m": 1.0},
         "route": {"source": "config", "points": [[20.0, 0.0], [40.0, 0.0]]},
         "sensors": SENSORS,

@@ -13,18 +13,16 @@ import asyncio
 import contextlib
 import io
 import logging
-import math
 from collections.abc import AsyncIterator
 from pathlib import Path
 from typing import Any
 
-import numpy as np
 import pytest
 import yaml
 
 from companion.config import ConfigError, ServiceConfig, check_config, parse_config
 from companion.service import Service
-from companion.service.codec import MavCodec, mavlink2
+from companion.service.codec import mavlink2
 from companion.service.identity import Health
 from companion.service.link import UdpInLink, UdpOutLink
 from companion.service.notify import SystemdNotifier
@@ -436,3 +434,44 @@ async def test_a_real_reboot_is_still_recognised(caplog: pytest.LogCaptureFixtur
         await until(lambda: svc.tel.reboots == 1)
         assert "reboot? reconfiguring" in caplog.text
         await until(lambda: svc.configured)
+
+
+# === 4. system_id auto never picks a stranger ==============================================
+
+
+async def test_auto_system_id_with_two_autopilots_chooses_none(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    """A second vehicle (system 2, 100 m away) heard first: neither is flown."""
+    cfg = make_config(autopilot={"auto_id_listen_s": 1.0})
+    async with over_udp(cfg, sysid=2, lat=HOME[0] + 0.0009) as (svc, stranger, _):
+        own = FakeAutopilot(UdpOutLink(*svc.link.local_address))  # type: ignore[attr-defined]
+        await own.start()
+        try:
+            await asyncio.sleep(2.5)
+            assert svc.conn.target_system is None and not svc.configured
+            own.set_mode(GUIDED)
+            await asyncio.sleep(0.5)
+            assert not stranger.setpoints() and not own.setpoints()
+            assert "autopilots of systems 1, 2 heard" in caplog.text
+        finally:
+            await own.stop()
+
+
+async def test_second_autopilot_after_the_choice_blocks_take_over(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    async with over_udp() as (svc, own, _):
+        await until(lambda: svc.configured)
+        assert svc.conn.target_system == 1
+        stranger = FakeAutopilot(UdpOutLink(*svc.link.local_address), sysid=2)  # type: ignore[attr-defined]
+        await stranger.start()
+        try:
+            await until(lambda: "a second autopilot (system 2)" in caplog.text)
+            own.set_mode(GUIDED)
+            await asyncio.sleep(0.8)
+            assert not svc.ownership.engaged and not own.setpoints() and not stranger.setpoints()
+            assert svc.conn.target_system == 1  # never switched
+            assert any("second autopilot 2 heard" in t for t in pilot_texts(own))
+        finally:
+            await stranger.stop()

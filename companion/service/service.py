@@ -159,6 +159,12 @@ class Service:
         self.conn = Connection(link, self.codec, self.clock.now)
         self.conn.on_message = self._on_message
         self.conn.on_unlocked = self._on_unlocked_heartbeat
+        self.conn.on_other = self._on_other_heartbeat
+        self._heard: dict[int, float] = {}
+        self._listen_since: float | None = None
+        self._ambiguous_said: list[int] = []
+        self._strangers: set[int] = set()
+        self._stranger_blocks = False
         fs = config.failsafe
         self.tel = Telemetry(
             self.sensors,
@@ -388,6 +394,8 @@ class Service:
                     ap.type,
                 )
             return
+        if ap.system_id == "auto" and not self._choose_autopilot(src_sys, t_rx):
+            return
         self.kind = kind
         self.vehicle_type = int(msg.type)
         self.conn.lock(src_sys, src_comp)
@@ -416,6 +424,55 @@ class Service:
             int(self.setpoint_frame),
         )
         self._autopilot_seen.set()
+
+    def _choose_autopilot(self, src_sys: int, t_rx: float) -> bool:
+        """`autopilot.system_id: auto`: True when `src_sys` is the only autopilot heard for
+        auto_id_listen_s since the first heartbeat; with more than one, choose none."""
+        listen = self.cfg.autopilot.auto_id_listen_s
+        self._heard[src_sys] = t_rx
+        if self._listen_since is None:
+            self._listen_since = t_rx
+            if listen > 0:
+                log.info(
+                    "autopilot heartbeat from system %d: listening %.1f s for others",
+                    src_sys,
+                    listen,
+                )
+        if t_rx - self._listen_since < listen:
+            return False
+        recent = sorted(s for s, t in self._heard.items() if t_rx - t <= 2 * listen + 1.0)
+        if len(recent) > 1:
+            if self._ambiguous_said != recent:
+                self._ambiguous_said = recent
+                log.error(
+                    "autopilots of systems %s heard and autopilot.system_id is auto: not "
+                    "choosing one; set autopilot.system_id to the one this companion is wired to",
+                    ", ".join(map(str, recent)),
+                )
+                self.notifier.status(f"several autopilots heard: {recent}; set system_id")
+            return False
+        return True
+
+    def _on_other_heartbeat(self, msg: MAVLinkMessage, t_rx: float) -> None:
+        """A heartbeat of another system after the lock: another autopilot means this
+        companion may not be where it thinks; with system_id auto, no take-over from now."""
+        if autopilot_kind(int(msg.autopilot)) is None or int(msg.type) in (6, 18):
+            return  # a ground station or onboard computer
+        sys_id = msg.get_srcSystem()
+        if sys_id in self._strangers:
+            return
+        self._strangers.add(sys_id)
+        if self.cfg.autopilot.system_id == "auto":
+            self._stranger_blocks = True
+            log.error(
+                "a second autopilot (system %d) is heard besides system %s: no take-over and no "
+                "auto start until autopilot.system_id is set",
+                sys_id,
+                self.conn.target_system,
+            )
+            self._say(f"second autopilot {sys_id} heard: set system_id", Severity.CRITICAL)
+        else:
+            log.warning("another autopilot (system %d) is heard; ignored", sys_id)
 
     def _on_message(self, msg: MAVLinkMessage, t_rx: float) -> None:
         mtype = msg.get_type()
@@ -753,6 +810,9 @@ class Service:
         initial = self._current_mode()
         if initial is None:
             return
+        if self._stranger_blocks:
+            self._say("auto start: not with a second autopilot heard", Severity.ERROR)
+            return
         self._auto_busy = True
         self._auto_armed = False
         self._allow_modes(initial)
@@ -879,7 +939,10 @@ class Service:
         if not self.frame_frozen:
             self._update_frame()
         self._check_streams(now)
-        events = self._update_ownership(now, allow_engage=self.configured and not self._auto_busy)
+        events = self._update_ownership(
+            now,
+            allow_engage=self.configured and not self._auto_busy and not self._stranger_blocks,
+        )
         assessment = assess(now, self.tel, self.limits, self.required_sensors)
         verdict, fs_events = self.failsafe.update(now, assessment)
         commanding = self.ownership.engaged or self._priming
