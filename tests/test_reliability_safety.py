@@ -12,6 +12,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import io
+import itertools
 import logging
 from collections.abc import AsyncIterator
 from pathlib import Path
@@ -299,7 +300,7 @@ async def test_auto_start_with_an_empty_mission_does_not_take_off(
         route={"source": "mission", "points": None},
         control={"auto_start": {"enabled": True, "arm_retry_s": 0.2, "prestream_s": 0.3}},
     )
-    async with over_udp(cfg, mission=[], **on_ground()) as (svc, ap, _):
+    async with over_udp(cfg, mission=[], **on_ground()) as (_svc, ap, _):
         await until(lambda: any("no route (mission empty)" in t for t in pilot_texts(ap)))
         await asyncio.sleep(1.5)  # a few downloads later: still nothing to fly
         assert not commands(ap, 400) and not commands(ap, 22) and not commands(ap, 176)
@@ -382,7 +383,7 @@ async def test_position_jump_within_the_limit_is_still_accepted() -> None:
 
 
 def _max_gap(times: list[float]) -> float:
-    return max((b - a for a, b in zip(times, times[1:], strict=False)), default=0.0)
+    return max((b - a for a, b in itertools.pairwise(times)), default=0.0)
 
 
 @pytest.mark.parametrize("attack", ["attitude_far_future", "position_2_5_s_ahead"])

@@ -381,7 +381,8 @@ class Telemetry:
                 # too big to be an estimator reset the plan can follow: a fault, never accepted
                 self._last_boot_ms["GLOBAL_POSITION_INT"] = last.time_boot_ms
                 if not self.jump_fault:
-                    self.jump_fault = f"position jump of {size:.0f} m over the {self.max_accepted_jump_m:g} m limit"
+                    limit = self.max_accepted_jump_m
+                    self.jump_fault = f"position jump of {size:.0f} m over the {limit:g} m limit"
                     self.notices.append(f"{self.jump_fault}: stopped")
                     log.error("%s: not accepted; stopped", self.jump_fault)
                 return self._reject("position_jump_fault")
