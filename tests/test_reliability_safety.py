@@ -476,3 +476,40 @@ async def test_second_autopilot_after_the_choice_blocks_take_over(
             assert any("second autopilot 2 heard" in t for t in pilot_texts(own))
         finally:
             await stranger.stop()
+
+
+# === issue 11: nothing heard; autopilot killed mid-flight and restarted ====================
+
+
+async def test_nothing_heard_is_said_once(caplog: pytest.LogCaptureFixture) -> None:
+    caplog.set_level(logging.INFO, logger="companion")
+    link = UdpInLink("127.0.0.1", 0)
+    svc = Service(make_config(), link, planner_factory=PlannerBox(), notifier=SystemdNotifier({}))
+    task = asyncio.create_task(svc.run())
+    await asyncio.sleep(5.0)
+    svc.stop()
+    assert await asyncio.wait_for(task, 10) == 0
+    said = [r for r in caplog.records if "waiting for autopilot heartbeat on" in r.getMessage()]
+    assert len(said) == 1 and "udpin:127.0.0.1:" in said[0].getMessage()
+
+
+async def test_autopilot_killed_mid_flight_and_restarted(caplog: pytest.LogCaptureFixture) -> None:
+    """Killed while flying (auto start done): the service stops commanding and says why;
+    the new boot (on the ground, disarmed) is neither armed nor taken off again."""
+    async with over_udp(auto_cfg(), **on_ground()) as (svc, ap, task):
+        await until(lambda: svc.ownership.engaged, 20.0)
+        addr = svc.link.local_address  # type: ignore[attr-defined]
+        await ap.stop()  # killed
+        await until(lambda: svc.health is Health.EMERGENCY)
+        assert "STOP: autopilot heartbeat lost" in caplog.text
+        await asyncio.sleep(1.0)
+        reborn = FakeAutopilot(UdpOutLink(*addr), **on_ground(custom_mode=STABILIZE))
+        await reborn.start()
+        try:
+            await until(lambda: svc.configured and svc.tel.heartbeat is not None, 10.0)
+            await asyncio.sleep(2.0)
+            assert not commands(reborn, 400) and not commands(reborn, 22)
+            assert not commands(reborn, 176) and not reborn.setpoints()
+            assert not svc.ownership.engaged and not task.done()
+        finally:
+            await reborn.stop()

@@ -91,6 +91,8 @@ STREAM_IDS = {
 }
 STREAMS_LOST_S = 2.0
 """Heartbeats without position this long: request the message rates again."""
+HEARTBEAT_WAIT_SAY_S = 2.0
+"""No autopilot heard this long after start: say so (once)."""
 MISSION_RETRY_S = 5.0
 """Auto start with an empty mission: download it again this often."""
 MIN_BASE_POINT_SPACING_M = 0.5
@@ -617,7 +619,13 @@ class Service:
     # === supervisor: configure, route, auto start ==========================================
 
     async def _supervise(self) -> None:
-        await self._autopilot_seen.wait()
+        with contextlib.suppress(TimeoutError):
+            await asyncio.wait_for(self._autopilot_seen.wait(), HEARTBEAT_WAIT_SAY_S)
+        if not self._autopilot_seen.is_set():
+            log.warning("waiting for autopilot heartbeat on %s", self.link.name)
+            self.notifier.status(f"waiting for autopilot heartbeat on {self.link.name}")
+            await self._autopilot_seen.wait()
+            log.info("autopilot heartbeat heard on %s", self.link.name)
         while True:
             self._reconfigure.clear()
             self.configured = False
