@@ -513,3 +513,92 @@ async def test_autopilot_killed_mid_flight_and_restarted(caplog: pytest.LogCaptu
             assert not svc.ownership.engaged and not task.done()
         finally:
             await reborn.stop()
+
+
+# === fuzzing what a byte fuzzer cannot reach: timestamps and sensor limits ==================
+
+from hypothesis import HealthCheck, given, settings  # noqa: E402
+from hypothesis import strategies as st  # noqa: E402
+
+from companion.service.telemetry import Telemetry  # noqa: E402
+
+LAT, LON = round(HOME[0] * 1e7), round(HOME[1] * 1e7)
+FORGED = st.lists(
+    st.tuples(
+        st.integers(0, 199),  # before which legitimate step
+        st.sampled_from(["ATTITUDE", "GLOBAL_POSITION_INT", "DISTANCE_SENSOR"]),
+        st.one_of(
+            st.integers(0, 2**32 - 1),  # anywhere
+            st.integers(-20_000, 20_000),  # near the true clock (offset from it)
+        ),
+        st.booleans(),  # absolute (True) or relative to the true stamp
+    ),
+    max_size=40,
+    unique_by=lambda f: f[0],  # at most one forged message between two good ones
+)
+
+
+def _stamped(kind: str, tb: int) -> Any:
+    tb &= 0xFFFFFFFF
+    if kind == "ATTITUDE":
+        return M.MAVLink_attitude_message(tb, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
+    if kind == "GLOBAL_POSITION_INT":
+        return M.MAVLink_global_position_int_message(tb, LAT, LON, 493_000, 5000, 0, 0, 0, 0)
+    return M.MAVLink_distance_sensor_message(tb, 10, 1000, 300, 0, 1, 39, 0, 0.0, 0.0, [0.0] * 4)
+
+
+@settings(max_examples=150, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(base=st.integers(1_000, 2**31), forged=FORGED)
+def test_fuzz_forged_timestamps_never_reset_nor_starve(
+    base: int, forged: list[tuple[int, str, int, bool]]
+) -> None:
+    """200 steps of a good 20 Hz stream (attitude, position, a range) with single forged
+    stamps (any value, or near the true clock) between them: never a reboot, and the
+    attitude, position and range are never older than 0.4 s (the maximum ages are 0.5 s:
+    no stop, no hold)."""
+    t = Telemetry(make_config().sensor_table())
+    by_step = {f[0]: f for f in forged}
+    for k in range(200):
+        now = 10.0 + 0.05 * k
+        tb = base + 50 * k
+        if k in by_step:
+            _, kind, stamp, absolute = by_step[k]
+            t.update(_stamped(kind, stamp if absolute else tb + stamp), now - 0.01)
+        for kind in ("ATTITUDE", "GLOBAL_POSITION_INT", "DISTANCE_SENSOR"):
+            t.update(_stamped(kind, tb), now)
+        if k > 0:
+            assert t.reboots == 0
+            assert t.attitude is not None and now - t.attitude.t_rx <= 0.4
+            assert t.position is not None and now - t.position.t_rx <= 0.4
+            assert t.ranges[1] is not None and now - t.ranges[1].t_rx <= 0.4
+
+
+@settings(max_examples=300, deadline=None)
+@given(
+    min_cm=st.integers(0, 65535),
+    max_cm=st.integers(0, 65535),
+    cur_cm=st.integers(0, 65535),
+)
+def test_fuzz_sensor_limits_never_turn_something_into_nothing(
+    min_cm: int, max_cm: int, cur_cm: int
+) -> None:
+    """Any min/max/current_distance on a sensor configured 0.1-10 m: a reading that reports
+    something nearer than the configured maximum is never stored as "nothing" (0.0); no
+    stored reading is in (0, min) (which the planner would also take as nothing); limits
+    that shrink the configured range are refused."""
+    t = Telemetry(make_config().sensor_table())
+    msg = M.MAVLink_distance_sensor_message(
+        1000, min_cm, max_cm, cur_cm, 0, 0, 0, 0, 0.0, 0.0, [0.0] * 4
+    )
+    stored = t.update(msg, 1.0) is not None
+    given_limits = max_cm not in (0, 65535)
+    shrinks = given_limits and (min_cm >= max_cm or min_cm > 15 or max_cm < 995)
+    if shrinks:
+        assert not stored and t.counters["rejected_sensor_limits"] == 1
+        return
+    assert stored
+    d = t.ranges[0].distance_m if t.ranges[0] is not None else math.nan
+    if 0 < cur_cm < 1000:
+        assert d >= 0.1  # something there: at its distance, or at the minimum if closer
+    else:
+        assert d == 0.0  # 0, 65535 or at/over the maximum: nothing detected

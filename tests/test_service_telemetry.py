@@ -57,11 +57,12 @@ def test_position_units_and_no_fix() -> None:
 
 def test_out_of_order_duplicates_and_reboot() -> None:
     t = tel()
-    t.update(att(5000), 1.0)
-    assert t.update(att(4990), 1.1) is None and t.counters["out_of_order"] == 1
-    assert t.update(att(5000), 1.2) is None and t.counters["duplicate"] == 1
-    t.update(pos(5000), 1.0)
-    # 4.9 s back: one message is no proof of a reboot (it could be forged)
+    for i in range(3):  # the first stamps of two kinds agree on the autopilot's clock
+        t.update(att(5000 + 50 * i), 1.0 + 0.05 * i)
+        t.update(pos(5000 + 50 * i), 1.0 + 0.05 * i)
+    assert t.update(att(5090), 1.15) is None and t.counters["out_of_order"] == 1
+    assert t.update(att(5100), 1.2) is None and t.counters["duplicate"] == 1
+    # 5 s back: one message is no proof of a reboot (it could be forged)
     assert t.update(att(100), 1.3) is None and t.counters["time_boot_suspect"] == 1
     assert t.reboots == 0 and t.position is not None
     # a new boot clock that several messages of two types agree on: a reboot

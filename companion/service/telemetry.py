@@ -55,12 +55,15 @@ CLOCK_EVIDENCE_TYPES = 2
 
 @dataclass(slots=True)
 class _ClockCandidate:
-    """Stamps that disagree with the known clock but agree with each other."""
+    """Stamps that disagree with the known clock (or come before any) but agree with each
+    other: their offsets from the receipt clock, ms."""
 
-    offset_ms: float
     back: bool
     kinds: set[str]
-    count: int
+    offsets_ms: list[float]
+
+    def median_ms(self) -> float:
+        return float(np.median(self.offsets_ms)) if self.offsets_ms else 0.0
 
 
 LOG_AT_COUNTS = frozenset(10**k for k in range(19))
@@ -286,36 +289,56 @@ class Telemetry:
         off = time_boot_ms - t_rx * 1000.0
         ref = self._clock_ref
         last = self._last_boot_ms.get(key)
-        if ref is not None:
-            ref = max(ref - CLOCK_DECAY_MS_PER_S * max(t_rx - self._clock_ref_t, 0.0), -1e18)
-        ahead = ref is not None and off > ref + FUTURE_TOLERANCE_MS
+        if ref is None:
+            # the first stamps: ordered per kind only, until several agree on the clock
+            self._first_clock(key, off, t_rx)
+            if last is not None and time_boot_ms <= last:
+                self._count("out_of_order" if time_boot_ms < last else "duplicate")
+                return False
+            self._last_boot_ms[key] = time_boot_ms
+            return True
+        ref -= CLOCK_DECAY_MS_PER_S * max(t_rx - self._clock_ref_t, 0.0)
+        ahead = off > ref + FUTURE_TOLERANCE_MS
         back = last is not None and last - time_boot_ms > REBOOT_BACKSTEP_MS
         if ahead or back:
             return self._clock_evidence(key, time_boot_ms, off, t_rx, back)
         self._clock_candidate = None
-        if ref is None or off > ref:
-            ref = off
-        self._clock_ref, self._clock_ref_t = ref, t_rx
+        self._clock_ref, self._clock_ref_t = max(ref, off), t_rx
         if last is not None and time_boot_ms <= last:
             self._count("out_of_order" if time_boot_ms < last else "duplicate")
             return False
         self._last_boot_ms[key] = time_boot_ms
         return True
 
+    def _first_clock(self, key: str, off: float, t_rx: float) -> None:
+        """Gather the first stamps; when enough agree, their median is the clock, and no
+        kind's last stamp may stay ahead of it by more than FUTURE_TOLERANCE_MS (a forged
+        first stamp far ahead would otherwise hold that kind back)."""
+        c = self._clock_candidate
+        if c is None or abs(off - c.median_ms()) > CLOCK_AGREE_MS:
+            c = self._clock_candidate = _ClockCandidate(False, set(), [])
+        c.kinds.add(key.split(".")[0])
+        c.offsets_ms.append(off)
+        if len(c.offsets_ms) < CLOCK_EVIDENCE_MSGS or len(c.kinds) < CLOCK_EVIDENCE_TYPES:
+            return
+        self._clock_candidate = None
+        self._clock_ref, self._clock_ref_t = c.median_ms(), t_rx
+        cap = int(self._clock_ref + t_rx * 1000.0 + FUTURE_TOLERANCE_MS)
+        for k, v in self._last_boot_ms.items():
+            self._last_boot_ms[k] = min(v, cap)
+
     def _clock_evidence(
         self, key: str, time_boot_ms: int, off: float, t_rx: float, back: bool
     ) -> bool:
         kind = key.split(".")[0]
         c = self._clock_candidate
-        if c is None or c.back != back or abs(off - c.offset_ms) > CLOCK_AGREE_MS:
-            c = self._clock_candidate = _ClockCandidate(off, back, {kind}, 0)
+        if c is None or c.back != back or abs(off - c.median_ms()) > CLOCK_AGREE_MS:
+            c = self._clock_candidate = _ClockCandidate(back, set(), [])
         c.kinds.add(kind)
-        c.count += 1
-        c.offset_ms = max(c.offset_ms, off)
-        if c.count < CLOCK_EVIDENCE_MSGS or len(c.kinds) < CLOCK_EVIDENCE_TYPES:
-            self._count(
-                "time_boot_suspect", logging.WARNING, f" ({key} {'back' if back else 'ahead'})"
-            )
+        c.offsets_ms.append(off)
+        if len(c.offsets_ms) < CLOCK_EVIDENCE_MSGS or len(c.kinds) < CLOCK_EVIDENCE_TYPES:
+            where = "back" if back else "ahead"
+            self._count("time_boot_suspect", logging.WARNING, f" ({key} {where})")
             return False
         self._clock_candidate = None
         if back:
@@ -327,7 +350,8 @@ class Telemetry:
         else:
             self._count("time_boot_resync", logging.WARNING, f" ({key})")
             self._last_boot_ms.clear()
-        self._clock_ref, self._clock_ref_t = c.offset_ms, t_rx
+        # the median: one odd stamp among the evidence does not set the clock
+        self._clock_ref, self._clock_ref_t = c.median_ms(), t_rx
         self._last_boot_ms[key] = time_boot_ms
         return True
 
