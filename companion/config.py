@@ -484,7 +484,29 @@ def check_config(path: Path, out: TextIO | None = None) -> int:
         f"link {cfg.link.connection})",
         file=out if out is not None else sys.stdout,
     )
+    note = link_note(cfg)
+    if note:
+        print(f"{path}: note: {note}", file=stream)
     return 0
+
+
+def link_note(cfg: ServiceConfig) -> str:
+    """What stands in the way of the link now and may not later (a serial device not
+    plugged in, a host name that does not resolve): `run` waits for it, so not an error."""
+    import os
+    import socket
+
+    spec = cfg.link.spec
+    if spec.kind == "serial":
+        if not os.path.exists(spec.device):
+            return f"link.connection: {spec.device} does not exist (yet); run waits for it"
+        return ""
+    if spec.kind in ("udpout", "tcp"):
+        try:
+            socket.getaddrinfo(spec.host, spec.port)
+        except OSError as exc:
+            return f"link.connection: host {spec.host!r} not found ({exc}); run retries"
+    return ""
 
 
 def takeover_problem(cfg: ServiceConfig) -> str:

@@ -602,3 +602,100 @@ def test_fuzz_sensor_limits_never_turn_something_into_nothing(
         assert d >= 0.1  # something there: at its distance, or at the minimum if closer
     else:
         assert d == 0.0  # 0, 65535 or at/over the maximum: nothing detected
+
+
+# === 10. link and flight log faults ========================================================
+
+
+async def test_port_in_use_is_one_line_and_an_exit_systemd_does_not_restart(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    import socket
+
+    from companion.service.service import EXIT_LINK
+
+    busy = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    busy.bind(("127.0.0.1", 0))
+    try:
+        port = busy.getsockname()[1]
+        cfg = make_config(link={"connection": f"udpin:127.0.0.1:{port}"})
+        svc = Service(cfg, UdpInLink("127.0.0.1", port), notifier=SystemdNotifier({}))
+        rc = await asyncio.wait_for(svc.run(), 10)
+    finally:
+        busy.close()
+    assert rc == EXIT_LINK == 3
+    errors = [r for r in caplog.records if r.levelno >= logging.ERROR]
+    assert len(errors) == 1 and "Address already in use" in errors[0].getMessage()
+    assert errors[0].exc_info is None  # no traceback
+    unit = (Path(__file__).resolve().parents[1] / "systemd" / "companion.service").read_text()
+    prevent = [ln for ln in unit.splitlines() if ln.startswith("RestartPreventExitStatus=")]
+    assert prevent and "3" in prevent[0].split("=", 1)[1].split()
+
+
+async def test_missing_serial_device_is_said_and_retried(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    from companion.service.link import open_link
+
+    device = tmp_path / "ttyACM9"
+    cfg = make_config(link={"connection": f"serial:{device}:57600"})
+    path = tmp_path / "c.yaml"
+    path.write_text(
+        yaml.safe_dump(
+            {
+                "link": {"connection": f"serial:{device}:57600"},
+                "route": {"source": "config", "points": [[30, 0]]},
+                "sensors": SENSORS,
+            }
+        )
+    )
+    out = io.StringIO()
+    assert check_config(path, out) == 0  # a USB device may come later: a note, not an error
+    assert "does not exist (yet)" in out.getvalue()
+    svc = Service(cfg, open_link(cfg.link.spec), notifier=SystemdNotifier({}))
+    task = asyncio.create_task(svc.run())
+    await asyncio.sleep(5.0)  # two retries
+    assert not task.done()
+    svc.stop()
+    assert await asyncio.wait_for(task, 10) == 0
+    said = [r for r in caplog.records if "cannot open serial:" in r.getMessage()]
+    assert len(said) == 1 and "retrying" in said[0].getMessage()
+
+
+async def test_flight_log_failing_mid_flight_keeps_flying_and_says_so(tmp_path: Path) -> None:
+    cfg = make_config(logging={"flight_log_dir": str(tmp_path / "log")})
+    async with over_udp(cfg) as (svc, ap, task):
+        await until(lambda: svc.configured)
+        ap.set_mode(GUIDED)
+        await ap.wait_for(lambda: len(ap.setpoints()) >= 10)
+        writer = svc.flight_log
+        assert writer is not None
+        await until(lambda: writer.path is not None and writer.path.exists())
+
+        class Full:
+            def write(self, data: str) -> int:
+                raise OSError(28, "No space left on device")
+
+            def flush(self) -> None: ...
+
+            def close(self) -> None:
+                raise OSError(28, "No space left on device")
+
+        real_open = writer._open
+
+        def full_open() -> None:
+            writer._file = Full()
+
+        writer.flush()
+        writer._file.close()  # the real file, replaced by a full disk
+        writer._file = Full()
+        writer._open = full_open  # type: ignore[method-assign]
+        await until(lambda: any("flight log failing" in t for t in pilot_texts(ap)), 5.0)
+        n = len(ap.setpoints())
+        await ap.wait_for(lambda: len(ap.setpoints()) >= n + 20)  # still flying
+        assert svc.ownership.engaged and not task.done()
+        writer._open = real_open  # type: ignore[method-assign]
+        writer._file = None
+        await until(lambda: "flight log writing again" in pilot_texts(ap), 5.0)
+        texts = pilot_texts(ap)
+        assert sum("flight log failing" in t for t in texts) == 1  # said once, not every second

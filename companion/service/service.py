@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import errno
 import logging
 import math
 import signal
@@ -91,6 +92,11 @@ STREAM_IDS = {
 }
 STREAMS_LOST_S = 2.0
 """Heartbeats without position this long: request the message rates again."""
+EXIT_LINK = 3
+"""`run`'s exit status when the link's port cannot be had (systemd: RestartPreventExitStatus)."""
+LINK_RETRY_S = 2.0
+"""A link that cannot be opened yet (serial device missing, host unknown): retried this often."""
+_LINK_FATAL_ERRNOS = frozenset({errno.EADDRINUSE, errno.EACCES, errno.EADDRNOTAVAIL, errno.EPERM})
 HEARTBEAT_WAIT_SAY_S = 2.0
 """No autopilot heard this long after start: say so (once)."""
 MISSION_RETRY_S = 5.0
@@ -253,21 +259,21 @@ class Service:
         self._fatal: BaseException | None = None
         self._counter_snapshot: dict[str, int] = {}
         self._text_id = 0
+        self._log_failing_said = ""
 
     # === public ============================================================================
 
     async def run(self) -> int:
-        """Run until `stop()`; 0 on a clean stop, 1 after a fatal error."""
+        """Run until `stop()`; 0 on a clean stop, 1 after a fatal error, 2 for a bad signing
+        key, EXIT_LINK (3) when the link's port cannot be had."""
         try:
             self._setup_signing()
         except SigningKeyError as exc:
             log.error("%s", exc)
             return 2
-        try:
-            await self.conn.open()
-        except OSError as exc:
-            log.error("cannot open %s: %s", self.link.name, exc)
-            return 1
+        failed = await self._open_link()
+        if failed is not None:
+            return failed
         log.info(
             "companion service on %s (%s time, %.0f Hz)",
             self.link.name,
@@ -289,6 +295,39 @@ class Service:
         if self._fatal is not None:
             return 1
         return 0
+
+    async def _open_link(self) -> int | None:
+        """Open the link; None when open. A port that cannot be had (in use, not allowed,
+        not an address of this machine) will not come free by retrying: one error line and
+        EXIT_LINK, which the systemd unit does not restart on. Anything else (a serial device
+        not there yet, a host name that does not resolve yet) is said once and retried every
+        LINK_RETRY_S until it opens or the service is stopped (then 0)."""
+        said = False
+        while True:
+            try:
+                await self.conn.open()
+                if said:
+                    log.info("%s open", self.link.name)
+                return None
+            except OSError as exc:
+                why = exc.strerror or str(exc)
+                if exc.errno in _LINK_FATAL_ERRNOS:
+                    log.error("cannot open %s: %s", self.link.name, why)
+                    return EXIT_LINK
+                if not said:
+                    said = True
+                    log.error(
+                        "cannot open %s: %s; retrying every %.0f s",
+                        self.link.name,
+                        why,
+                        LINK_RETRY_S,
+                    )
+                    self.notifier.ready(f"cannot open {self.link.name}: {why}; retrying")
+            self.notifier.watchdog()
+            with contextlib.suppress(TimeoutError):
+                await asyncio.wait_for(self._stop.wait(), LINK_RETRY_S)
+            if self._stop.is_set():
+                return 0
 
     def stop(self) -> None:
         """Ask `run` to return (safe from signal handlers and other tasks)."""
@@ -599,6 +638,13 @@ class Service:
                 self._report_counters()
             if self.flight_log is not None:
                 self.flight_log.flush()
+                failing = self.flight_log.failing
+                if failing != self._log_failing_said:
+                    if failing:
+                        self._say(f"flight log failing: {failing}", Severity.WARNING)
+                    else:
+                        self._say("flight log writing again")
+                    self._log_failing_said = failing
 
     def _loop_healthy(self, wall: float) -> bool:
         if self.sim_time:
@@ -1471,7 +1517,8 @@ async def _run_with_signals(service: Service) -> int:
 
 
 def main(config_path: Path) -> int:
-    """`companion run --config FILE`: exit 0 on SIGTERM/SIGINT, 2 on a bad config, 1 on error."""
+    """`companion run --config FILE`: exit 0 on SIGTERM/SIGINT, 2 on a bad config, 3 when the
+    link's port cannot be had (in use), 1 on another error."""
     try:
         cfg = load_config(Path(config_path))
     except ConfigError as exc:
