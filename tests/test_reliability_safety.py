@@ -14,6 +14,7 @@ import contextlib
 import io
 import itertools
 import logging
+import math
 from collections.abc import AsyncIterator
 from pathlib import Path
 from typing import Any

@@ -100,6 +100,6 @@ async def test_auto_start_retries_while_the_simulator_refuses_after_boot(
     """The simulator refuses GUIDED and arming for prearm_delay_s after boot (as ArduCopter
     does for ~40 s, PX4 for a few): auto start retries, shows the reason, then flies."""
     caplog.set_level("INFO", logger="companion")
-    svc, server = await fly(personality, 24.0, prearm_delay_s=4.0)
+    svc, _ = await fly(personality, 24.0, prearm_delay_s=4.0)
     assert "refused" in caplog.text and reason in caplog.text
     assert svc.ownership.engaged and svc.counters["auto_start_failed"] == 0
