@@ -778,8 +778,10 @@ class Service:
             self.counters["auto_start_aborted"] += 1
             return
         exc = task.exception()
-        if exc is not None:
-            raise exc
+        if exc is not None:  # a bug in auto start must not end the process: report it
+            self.counters["auto_start_failed"] += 1
+            log.error("auto start failed", exc_info=exc)
+            self._say(f"auto start failed: internal error {type(exc).__name__}", Severity.ERROR)
 
     def _allow_modes(self, *names: str) -> None:
         """Auto start: the modes the vehicle may be in now; any other aborts it."""

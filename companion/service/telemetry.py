@@ -46,11 +46,10 @@ REBOOT_BACKSTEP_MS = 3000
 FUTURE_TOLERANCE_MS = 250.0
 """A stamp this far ahead of the autopilot's clock as known is suspect (less than the
 position's maximum age, so a forged one accepted inside it cannot starve the loop)."""
-CLOCK_DECAY_MS_PER_S = 1.0
-"""The clock offset follows an autopilot clock slower than ours (1000 ppm) without a re-sync."""
 CLOCK_AGREE_MS = 1000.0
 CLOCK_EVIDENCE_MSGS = 5
 CLOCK_EVIDENCE_TYPES = 2
+CLOCK_CANDIDATES = 8
 
 
 @dataclass(slots=True)
@@ -248,9 +247,9 @@ class Telemetry:
         ]
         self._last_boot_ms: dict[str, int] = {}
         self._clock_ref: float | None = None
+        self._last_rx: dict[str, float] = {}
         """The autopilot's boot clock minus the receipt clock, milliseconds."""
-        self._clock_ref_t = 0.0
-        self._clock_candidate: _ClockCandidate | None = None
+        self._clock_candidates: list[_ClockCandidate] = []
         self._jump_since: float | None = None
         self._jump_dt = 0.0
 
@@ -276,9 +275,11 @@ class Telemetry:
         return False
 
     def _in_order(self, key: str, time_boot_ms: int, t_rx: float) -> bool:
-        """False for a stale, duplicate or suspect stamp. The autopilot's boot clock is
-        tracked as its offset from the receipt clock (the least-delayed message's, decaying
-        CLOCK_DECAY_MS_PER_S): a stamp more than FUTURE_TOLERANCE_MS ahead of it, or more than
+        """False for a stale, duplicate or suspect stamp. Where the autopilot's boot clock is
+        now is the lower median, over the message kinds, of each kind's last accepted stamp
+        plus the receipt time since (so one kind forged ahead cannot move it, and a clock that
+        runs at another rate than ours is followed message by message). A stamp more than
+        FUTURE_TOLERANCE_MS ahead of it, or more than
         REBOOT_BACKSTEP_MS behind the last stamp of its kind, is held as evidence of a new
         clock and dropped; only CLOCK_EVIDENCE_MSGS such stamps of CLOCK_EVIDENCE_TYPES
         message types agreeing with each other, with no stamp of the old clock among them,
@@ -292,55 +293,76 @@ class Telemetry:
         if ref is None:
             # the first stamps: ordered per kind only, until several agree on the clock
             self._first_clock(key, off, t_rx)
-            if last is not None and time_boot_ms <= last:
-                self._count("out_of_order" if time_boot_ms < last else "duplicate")
-                return False
-            self._last_boot_ms[key] = time_boot_ms
-            return True
-        ref -= CLOCK_DECAY_MS_PER_S * max(t_rx - self._clock_ref_t, 0.0)
-        ahead = off > ref + FUTURE_TOLERANCE_MS
+            if self._clock_ref is None:
+                if last is not None and time_boot_ms <= last:
+                    self._count("out_of_order" if time_boot_ms < last else "duplicate")
+                    return False
+                self._last_boot_ms[key] = time_boot_ms
+                self._last_rx[key] = t_rx
+                return True
+            # the clock has just been agreed on: this stamp is judged by it like any other
+            last = self._last_boot_ms.get(key)
+        expected = self._expected_stamp(t_rx)
+        ahead = expected is not None and time_boot_ms > expected + FUTURE_TOLERANCE_MS
         back = last is not None and last - time_boot_ms > REBOOT_BACKSTEP_MS
         if ahead or back:
             return self._clock_evidence(key, time_boot_ms, off, t_rx, back)
-        self._clock_candidate = None
-        self._clock_ref, self._clock_ref_t = max(ref, off), t_rx
+        self._clock_candidates.clear()
         if last is not None and time_boot_ms <= last:
             self._count("out_of_order" if time_boot_ms < last else "duplicate")
             return False
         self._last_boot_ms[key] = time_boot_ms
+        self._last_rx[key] = t_rx
         return True
+
+    def _expected_stamp(self, t_rx: float) -> float | None:
+        """The autopilot's clock now (ms) from every kind's last accepted stamp, or None."""
+        rx = self._last_rx
+        vals = sorted(
+            stamp + (t_rx - rx[k]) * 1000.0 for k, stamp in self._last_boot_ms.items() if k in rx
+        )
+        return vals[(len(vals) - 1) // 2] if vals else None
+
+    def _candidate(self, key: str, off: float, back: bool) -> _ClockCandidate | None:
+        """Add a stamp to the group of stamps it agrees with (a new one if none; at most
+        CLOCK_CANDIDATES groups, so stamps forged between good ones stay apart from them);
+        the group once it is evidence enough (then all groups are dropped), else None."""
+        for c in self._clock_candidates:
+            if c.back == back and abs(off - c.median_ms()) <= CLOCK_AGREE_MS:
+                break
+        else:
+            c = _ClockCandidate(back, set(), [])
+            self._clock_candidates.append(c)
+            if len(self._clock_candidates) > CLOCK_CANDIDATES:
+                self._clock_candidates.pop(0)
+        c.kinds.add(key.split(".")[0])
+        c.offsets_ms.append(off)
+        if len(c.offsets_ms) < CLOCK_EVIDENCE_MSGS or len(c.kinds) < CLOCK_EVIDENCE_TYPES:
+            return None
+        self._clock_candidates.clear()
+        return c
 
     def _first_clock(self, key: str, off: float, t_rx: float) -> None:
         """Gather the first stamps; when enough agree, their median is the clock, and no
         kind's last stamp may stay ahead of it by more than FUTURE_TOLERANCE_MS (a forged
         first stamp far ahead would otherwise hold that kind back)."""
-        c = self._clock_candidate
-        if c is None or abs(off - c.median_ms()) > CLOCK_AGREE_MS:
-            c = self._clock_candidate = _ClockCandidate(False, set(), [])
-        c.kinds.add(key.split(".")[0])
-        c.offsets_ms.append(off)
-        if len(c.offsets_ms) < CLOCK_EVIDENCE_MSGS or len(c.kinds) < CLOCK_EVIDENCE_TYPES:
+        c = self._candidate(key, off, back=False)
+        if c is None:
             return
-        self._clock_candidate = None
-        self._clock_ref, self._clock_ref_t = c.median_ms(), t_rx
+        self._clock_ref = c.median_ms()
         cap = int(self._clock_ref + t_rx * 1000.0 + FUTURE_TOLERANCE_MS)
         for k, v in self._last_boot_ms.items():
-            self._last_boot_ms[k] = min(v, cap)
+            if v > cap:
+                self._last_boot_ms[k], self._last_rx[k] = cap, t_rx
 
     def _clock_evidence(
         self, key: str, time_boot_ms: int, off: float, t_rx: float, back: bool
     ) -> bool:
-        kind = key.split(".")[0]
-        c = self._clock_candidate
-        if c is None or c.back != back or abs(off - c.median_ms()) > CLOCK_AGREE_MS:
-            c = self._clock_candidate = _ClockCandidate(back, set(), [])
-        c.kinds.add(kind)
-        c.offsets_ms.append(off)
-        if len(c.offsets_ms) < CLOCK_EVIDENCE_MSGS or len(c.kinds) < CLOCK_EVIDENCE_TYPES:
+        c = self._candidate(key, off, back)
+        if c is None:
             where = "back" if back else "ahead"
             self._count("time_boot_suspect", logging.WARNING, f" ({key} {where})")
             return False
-        self._clock_candidate = None
         if back:
             self._count("time_boot_backwards", logging.WARNING, f" ({key})")
             self.reboots += 1
@@ -350,8 +372,10 @@ class Telemetry:
         else:
             self._count("time_boot_resync", logging.WARNING, f" ({key})")
             self._last_boot_ms.clear()
+            self._last_rx.clear()
         # the median: one odd stamp among the evidence does not set the clock
-        self._clock_ref, self._clock_ref_t = c.median_ms(), t_rx
+        self._clock_ref = c.median_ms()
+        self._last_rx[key] = t_rx
         self._last_boot_ms[key] = time_boot_ms
         return True
 
@@ -398,12 +422,12 @@ class Telemetry:
                 # measured on its first sample, where the velocity prediction is best
                 self._jump_ned = self._residual_ned.copy()
             if t_rx - self._jump_since < self.jump_accept_s:
-                self._last_boot_ms["GLOBAL_POSITION_INT"] = last.time_boot_ms
+                self._unaccept_position(last)
                 return self._reject("position_jump")
             size = float(np.linalg.norm(self._jump_ned))
             if size > self.max_accepted_jump_m:
                 # too big to be an estimator reset the plan can follow: a fault, never accepted
-                self._last_boot_ms["GLOBAL_POSITION_INT"] = last.time_boot_ms
+                self._unaccept_position(last)
                 if not self.jump_fault:
                     limit = self.max_accepted_jump_m
                     self.jump_fault = f"position jump of {size:.0f} m over the {limit:g} m limit"
@@ -447,6 +471,12 @@ class Telemetry:
         residual = float(np.linalg.norm(self._residual_ned))
         dt_accel = dt if self._jump_since is None else min(dt, self._jump_dt)
         return residual > self.max_jump_m + 0.5 * MAX_ACCEL_MPS2 * dt_accel * dt_accel
+
+    def _unaccept_position(self, last: Position) -> None:
+        """A position passed the stamp checks but is rejected: its kind's clock stays at the
+        last accepted one."""
+        self._last_boot_ms["GLOBAL_POSITION_INT"] = last.time_boot_ms
+        self._last_rx["GLOBAL_POSITION_INT"] = last.t_rx
 
     @staticmethod
     def _dt(last: Position, time_boot_ms: int, t_rx: float) -> float:
