@@ -955,7 +955,7 @@ class Service:
                 if reason != last:
                     last = reason
                     log.warning("%s refused (%s); retrying until arm_timeout_s", what, reason)
-                await asyncio.sleep(retry_s)
+                await self._sleep_service_time(retry_s)  # simulated time in sim mode
 
     def _climbing(self) -> bool:
         pos = self.tel.position
