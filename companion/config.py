@@ -90,6 +90,11 @@ class AutopilotConfig(Section):
     """`autopilot:` which autopilot to fly and how to talk to it.
 
     type: "auto" detects ArduPilot or PX4 from the heartbeat.
+    system_id: "auto" flies the only autopilot heard: after its first heartbeat the service
+        listens auto_id_listen_s for others; with more than one it chooses none (an error
+        says which were heard) and waits for system_id to be set. Once chosen it never
+        switches; another autopilot heard later is reported and no take-over (nor auto
+        start) happens until system_id is set.
     setpoint_frame: "auto" = relative altitude (6) on ArduPilot, global AMSL (5) on PX4,
         whose frame 6 applies the home/origin altitude difference with the wrong sign.
         Terrain frames are not offered: ArduCopter rejects them with velocity.
@@ -97,6 +102,7 @@ class AutopilotConfig(Section):
 
     type: Literal["auto", "ardupilot", "px4"] = "auto"
     system_id: SystemId | Literal["auto"] = "auto"
+    auto_id_listen_s: Annotated[float, Field(ge=0, le=30)] = 1.5
     component_id: ComponentId = 1
     heartbeat_timeout_s: Annotated[float, Field(gt=0, le=60)] = 3.0
     command_timeout_s: Annotated[float, Field(gt=0, le=30)] = 1.0
@@ -155,6 +161,9 @@ class RouteSection(Section):
     The vehicle's position when the service takes over is prepended as the first base point,
     with the vehicle's heading as the start heading.
     arrival_heading_deg: ENU degrees (counter-clockwise from east), optional.
+    Bounds (as for a downloaded mission): at most MAX_ROUTE_POINTS points, each within
+    MAX_ROUTE_EXTENT_M of home (points) or of the first point (points_latlon), consecutive
+    points at least MIN_ROUTE_SPACING_M apart.
     """
 
     source: Literal["config", "mission"] = "config"
@@ -180,9 +189,59 @@ class RouteSection(Section):
             assert pts is not None
             if not pts:
                 raise ValueError("route needs at least one base point")
+            if self.points is not None:
+                xy = [(float(x), float(y)) for x, y in self.points]
+            else:
+                xy = latlon_points_xy([(float(a), float(b)) for a, b in pts])
+            problem = route_problem(xy, origin_is_home=self.points is not None)
+            if problem:
+                raise ValueError(problem)
         elif given:
             raise ValueError("source 'mission' takes its points from the autopilot; remove points")
         return self
+
+
+MAX_ROUTE_POINTS = 1000
+"""Base points a route may have (the mission download's limit too)."""
+MAX_ROUTE_EXTENT_M = 50_000.0
+"""How far from home (or the first lat/lon point) a base point may be."""
+MIN_ROUTE_SPACING_M = 1.0
+"""Consecutive base points closer than this are refused (the route needs distinct points)."""
+
+
+def latlon_points_xy(points: list[tuple[float, float]]) -> list[tuple[float, float]]:
+    """(lat, lon) degrees -> east/north metres from the first point (small-area, sphere)."""
+    lat0, lon0 = points[0]
+    r = 6_371_000.0
+    out = []
+    for lat, lon in points:
+        dlon = (lon - lon0 + 180.0) % 360.0 - 180.0
+        east = math.radians(dlon) * r * math.cos(math.radians(0.5 * (lat + lat0)))
+        out.append((east, math.radians(lat - lat0) * r))
+    return out
+
+
+def route_problem(xy: list[tuple[float, float]], origin_is_home: bool = True) -> str:
+    """Why these base points (x east, y north, metres) cannot be flown, or "" if they can."""
+    if len(xy) > MAX_ROUTE_POINTS:
+        return f"route of {len(xy)} base points is longer than {MAX_ROUTE_POINTS}"
+    where = "home" if origin_is_home else "the first point"
+    for i, (x, y) in enumerate(xy):
+        if not (math.isfinite(x) and math.isfinite(y)):
+            return f"base point {i} is not finite"
+        if math.hypot(x, y) > MAX_ROUTE_EXTENT_M:
+            return (
+                f"base point {i} is {math.hypot(x, y) / 1000:.0f} km from {where} "
+                f"(at most {MAX_ROUTE_EXTENT_M / 1000:.0f} km)"
+            )
+    for i in range(1, len(xy)):
+        gap = math.hypot(xy[i][0] - xy[i - 1][0], xy[i][1] - xy[i - 1][1])
+        if gap < MIN_ROUTE_SPACING_M:
+            return (
+                f"base points {i - 1} and {i} are {gap:.2f} m apart "
+                f"(consecutive points at least {MIN_ROUTE_SPACING_M:g} m apart)"
+            )
+    return ""
 
 
 class FailsafeConfig(Section):
@@ -198,6 +257,9 @@ class FailsafeConfig(Section):
     after jump_accept_s if it persists, e.g. an EKF reset).
     max_position_jump_m: so is a position this far off the path the reported velocity
     predicts (more after a gap in the data: 5 m/s^2 times its square).
+    max_accepted_jump_m: a jump that persists is accepted as an estimator reset (the plan
+    moves with it) only up to this size; a larger one is a fault: the service stops
+    commanding, says why, and stays stopped until the position is back near the last good one.
     range_median_samples: each range sensor's value is the median of its last this many
     readings ("nothing detected" counting as farthest): a single spike or dropout of one
     reading never reaches the planner, at the cost of (n - 1) / 2 readings of delay. 1: off.
@@ -211,6 +273,7 @@ class FailsafeConfig(Section):
     max_speed_mps: Positive = 40.0
     jump_accept_s: Positive = 1.0
     max_position_jump_m: Positive = 2.0
+    max_accepted_jump_m: Positive = 50.0
     range_median_samples: Annotated[int, Field(ge=1, le=9)] = 3
 
 
@@ -421,6 +484,7 @@ def check_config(path: Path, out: TextIO | None = None, connection: str | None =
     try:
         cfg = load_config(path, connection)
         _check_files(cfg)
+        _check_takeover(cfg)
     except ConfigError as exc:
         print(f"{path}: invalid configuration", file=stream)
         for line in exc.errors:
@@ -455,6 +519,45 @@ def link_warnings(spec: LinkSpec) -> list[str]:
     except (OSError, UnicodeError) as exc:
         return [f"host {spec.host!r} does not resolve ({getattr(exc, 'strerror', None) or exc})"]
     return []
+
+
+def takeover_problem(cfg: ServiceConfig) -> str:
+    """Build what a take-over builds (the route and the planner) as if the vehicle took
+    over at home (at H_d, heading east); the error it raises, or "" if none. A mission route
+    is only known in flight: the service checks it then, and holds if it cannot be flown."""
+    import numpy as np
+
+    from companion.planner import Planner
+    from companion.planner.route import Route
+
+    r = cfg.route
+    if r.source != "config":
+        return ""
+    if r.points is not None:
+        xy = np.array(r.points, dtype=np.float64).reshape(-1, 2)
+    else:
+        assert r.points_latlon is not None
+        xy = np.array(latlon_points_xy(list(r.points_latlon)), dtype=np.float64).reshape(-1, 2)
+    here = np.zeros(2)
+    # the vehicle's position becomes the first base point; points it is on are taken as passed
+    while len(xy) and float(np.hypot(*(xy[0] - here))) < 0.5:
+        xy = xy[1:]
+    if len(xy) == 0:
+        return ""
+    params = cfg.planner.to_params()
+    try:
+        arrival = None if r.arrival_heading_deg is None else math.radians(r.arrival_heading_deg)
+        route = Route(np.vstack([here, xy]), 0.0, arrival)
+        Planner(params, cfg.sensor_table(), route, np.array([0.0, 0.0, params.h_d_m]))
+    except (ValueError, ArithmeticError) as exc:
+        return f"route/planner cannot be built at take-over: {exc}"
+    return ""
+
+
+def _check_takeover(cfg: ServiceConfig) -> None:
+    problem = takeover_problem(cfg)
+    if problem:
+        raise ConfigError(None, [problem])
 
 
 def _check_files(cfg: ServiceConfig) -> None:

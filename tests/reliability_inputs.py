@@ -174,7 +174,8 @@ class ReceivePath:
     """A Service locked onto autopilot (1, 1) whose datagrams are fed by hand."""
 
     def __init__(self, cfg: ServiceConfig | None = None, signing_key: bytes | None = None):
-        self.cfg = cfg or make_config()
+        # locks on its first heartbeat (no listening for other autopilots)
+        self.cfg = cfg or make_config(autopilot={"auto_id_listen_s": 0.0})
         self.link = UdpInLink("127.0.0.1", 0)
         self.svc = Service(
             self.cfg,

@@ -44,7 +44,11 @@ def make_config(**sections: Any) -> ServiceConfig:
     """A test config: fast timeouts, three sensors, a short route; override by section."""
     data: dict[str, Any] = {
         "link": {"connection": "udpin:127.0.0.1:0"},
-        "autopilot": {"heartbeat_timeout_s": 0.6, "command_timeout_s": 0.3},
+        "autopilot": {
+            "heartbeat_timeout_s": 0.6,
+            "command_timeout_s": 0.3,
+            "auto_id_listen_s": 0.3,
+        },
         "control": {"rate_hz": 20.0, "min_engage_height_m": 1.0},
         "route": {"source": "config", "points": [[20.0, 0.0], [40.0, 0.0]]},
         "sensors": SENSORS,
@@ -84,11 +88,18 @@ class FakeAutopilot:
     yaw: float = 0.0
     ranges_cm: dict[int, int] = field(default_factory=lambda: {0: 0, 1: 700, 2: 700})
     orientations: dict[int, tuple[int, list[float]]] = field(default_factory=dict)
+    limits_cm: dict[int, tuple[int, int]] = field(default_factory=dict)
+    """Per sensor id (min_distance, max_distance) cm; default (10, 1000)."""
     rate_hz: float = 40.0
     heartbeat_enabled: bool = True
     telemetry_enabled: bool = True
     sensors_enabled: set[int] | None = None
     command_results: dict[int, int] = field(default_factory=dict)
+    result_script: dict[int, list[int]] = field(default_factory=dict)
+    """Per command: results used first, one per COMMAND_LONG (-1 = no answer), then
+    command_results."""
+    refusal_text: str | None = None
+    """Sent as STATUSTEXT (CRITICAL, chunked like ArduPilot's) with each refused command."""
     mission: list[tuple[float, float]] = field(default_factory=list)
     follow_setpoints: bool = False
     answer_timesync: bool = True
@@ -187,9 +198,10 @@ class FakeAutopilot:
             if self.sensors_enabled is not None and sid not in self.sensors_enabled:
                 continue
             orientation, q = self.orientations[sid]
+            lo, hi = self.limits_cm.get(sid, (10, 1000))
             self.send(
                 mavlink2.MAVLink_distance_sensor_message(
-                    tb, 10, 1000, cm, 0, sid, orientation, 0, 0.0, 0.0, q
+                    tb, lo, hi, cm, 0, sid, orientation, 0, 0.0, 0.0, q
                 )
             )
 
@@ -227,7 +239,12 @@ class FakeAutopilot:
     def _on_command_long(self, msg: Any) -> None:
         self.commands.append(msg)
         cmd = int(msg.command)
-        result = self.command_results.get(cmd, 0)
+        script = self.result_script.get(cmd)
+        result = script.pop(0) if script else self.command_results.get(cmd, 0)
+        if result != 0 and self.refusal_text is not None:
+            raw = self.refusal_text.encode()
+            for seq, i in enumerate(range(0, len(raw), 50)):
+                self.send(mavlink2.MAVLink_statustext_message(2, raw[i : i + 50], 7, seq))
         if result == -1:
             return  # never answer
         self._ack(msg, result)

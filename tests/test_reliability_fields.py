@@ -8,7 +8,7 @@ setpoint sent is finite and near the vehicle, and the planner was never given a 
 state or a range outside [0, max). Values: NaN/inf in ATTITUDE, positions at and beyond the
 int32 limits, distances 0, below min, above max and 65535, orientations not in the sensor
 table, duplicated sensor ids, time_boot_ms going backwards a little (reordered) and a lot
-(reboot), other system and component ids.
+(a forged reboot), far in the future, other system and component ids.
 """
 
 from __future__ import annotations
@@ -185,10 +185,16 @@ CASES: list[tuple[str, Callable[[FakeAutopilot, int], list[Any]], str, str]] = [
         "",
     ),
     (
-        "time_boot_back_a_lot",  # an autopilot reboot
-        lambda ap, tb: [att(max(tb - 10_000, 1))],
-        "input.time_boot_backwards",
-        "reboot? reconfiguring",
+        "time_boot_back_a_lot",  # a reboot? not while the old clock's messages go on
+        lambda ap, tb: [att(max(tb - 10_000, 1)), gpi(max(tb - 10_000, 1), LAT, LON, 493_000)],
+        "input.time_boot_suspect",
+        "ATTITUDE back",
+    ),
+    (
+        "time_boot_far_future",  # one forged stamp: dropped, does not poison the ordering
+        lambda ap, tb: [att(0xFFFFFFF0)],
+        "input.time_boot_suspect",
+        "ATTITUDE ahead",
     ),
 ]
 

@@ -250,7 +250,8 @@ async def test_distance_sensor_mapping_units_and_orientation_check() -> None:
         ap.set_mode(GUIDED)
         await until(lambda: len(box.made) == 1 and len(box.made[0].inputs) > 3)
         _, ranges, _ = box.made[0].inputs[-1]
-        np.testing.assert_allclose(ranges, [3.5, 0.0, 0.0])  # nothing detected = 0.0
+        # below min = too close to measure: the minimum range; at max: nothing detected = 0.0
+        np.testing.assert_allclose(ranges, [3.5, 0.1, 0.0])
         ap.orientations[0] = (2, [0, 0, 0, 0])  # now claims YAW_90: not our front sensor
         await until(
             lambda: svc.counter_values().get("input.rejected_sensor_orientation_mismatch", 0) > 3
@@ -355,7 +356,7 @@ async def test_set_desired_height_reaches_planner() -> None:
     async with running() as (svc, ap, box):
         await until(lambda: svc.configured)
         ap.set_mode(GUIDED)
-        await until(lambda: len(box.made) == 1)
+        await until(lambda: len(box.made) == 1 and svc.planner is not None)
         svc.set_desired_height(3.5)
         assert box.made[0].h_d == 3.5
         with pytest.raises(ValueError):

@@ -32,8 +32,7 @@ async def fly(personality: str, until_s: float, **sim: Any) -> tuple[Service, An
         speedup=math.inf,
         lockstep={"enabled": True, "period_s": 0.05},
         personality=personality,
-        prearm_delay_s=0.5,
-        **sim,
+        **{"prearm_delay_s": 0.5, **sim},
     )
     await server.start()
     start = np.array(sc.start_position[:2])
@@ -86,3 +85,21 @@ async def test_pilot_mode_change_stops_the_service() -> None:
     assert svc.ownership.state.value == "released"
     assert svc.counters["released"] == 1
     assert server.truth[-1].mode == "LOITER"  # and it stays there: no mode change by us
+
+
+@pytest.mark.parametrize(
+    ("personality", "reason"),
+    [
+        ("ardupilot", "Mode change to GUIDED failed: requires position"),
+        ("px4", "Preflight Fail: no heading reference"),
+    ],
+)
+async def test_auto_start_retries_while_the_simulator_refuses_after_boot(
+    personality: str, reason: str, caplog: pytest.LogCaptureFixture
+) -> None:
+    """The simulator refuses GUIDED and arming for prearm_delay_s after boot (as ArduCopter
+    does for ~40 s, PX4 for a few): auto start retries, shows the reason, then flies."""
+    caplog.set_level("INFO", logger="companion")
+    svc, _ = await fly(personality, 24.0, prearm_delay_s=4.0)
+    assert "refused" in caplog.text and reason in caplog.text
+    assert svc.ownership.engaged and svc.counters["auto_start_failed"] == 0

@@ -57,17 +57,29 @@ def test_position_units_and_no_fix() -> None:
 
 def test_out_of_order_duplicates_and_reboot() -> None:
     t = tel()
-    t.update(att(5000), 1.0)
-    assert t.update(att(4990), 1.1) is None and t.counters["out_of_order"] == 1
-    assert t.update(att(5000), 1.2) is None and t.counters["duplicate"] == 1
-    t.update(pos(5000), 1.0)
-    assert t.update(att(100), 1.3) == "ATTITUDE"  # 4.9 s back: a reboot
+    for i in range(3):  # the first stamps of two kinds agree on the autopilot's clock
+        t.update(att(5000 + 50 * i), 1.0 + 0.05 * i)
+        t.update(pos(5000 + 50 * i), 1.0 + 0.05 * i)
+    assert t.update(att(5090), 1.15) is None and t.counters["out_of_order"] == 1
+    assert t.update(att(5100), 1.2) is None and t.counters["duplicate"] == 1
+    # 5 s back: one message is no proof of a reboot (it could be forged)
+    assert t.update(att(100), 1.3) is None and t.counters["time_boot_suspect"] == 1
+    assert t.reboots == 0 and t.position is not None
+    # a new boot clock that several messages of two types agree on: a reboot
+    for i in range(3):
+        t.update(att(150 + 50 * i), 1.35 + 0.05 * i)
+        t.update(pos(150 + 50 * i), 1.35 + 0.05 * i)
     assert t.reboots == 1 and t.counters["time_boot_backwards"] == 1
-    assert t.position is None  # everything else forgotten
+    assert t.position is not None and t.position.time_boot_ms >= 150  # the new clock's
 
 
 def test_position_jump_rejected_then_accepted_if_it_persists() -> None:
-    t = Telemetry(make_config().sensor_table(), max_speed_mps=20.0, jump_accept_s=0.5)
+    t = Telemetry(
+        make_config().sensor_table(),
+        max_speed_mps=20.0,
+        jump_accept_s=0.5,
+        max_accepted_jump_m=150.0,
+    )
     t.update(pos(1000, 0.0), 1.0)
     assert t.update(pos(1100, 0.5), 1.1) is not None  # 5 m/s: fine
     assert t.update(pos(1200, 100.0), 1.2) is None  # 1000 m/s: glitch
@@ -83,10 +95,11 @@ def test_distance_sensor_mapping_units_and_nothing_detected() -> None:
     assert t.update(dist(1, 0, 250), now)
     r = t.range_vector(now, 0.5)
     assert r[0] == 2.5 and math.isnan(r[1]) and math.isnan(r[2])  # missing = NaN
-    for cm, name in ((0, "range_none"), (65535, "range_none"), (5, "range_below_min"),
-                     (1000, "range_at_max"), (1500, "range_at_max")):  # fmt: skip
+    for cm, name, want in ((0, "range_none", 0.0), (65535, "range_none", 0.0),
+                           (5, "range_below_min", 0.1),  # too close to measure: at the min
+                           (1000, "range_at_max", 0.0), (1500, "range_at_max", 0.0)):  # fmt: skip
         t.update(dist(0, 0, cm), now)
-        assert t.range_vector(now, 0.5)[0] == 0.0  # fresh "nothing detected"
+        assert t.range_vector(now, 0.5)[0] == want  # fresh "nothing" (0.0) or the minimum
         assert t.counters[name] >= 1
     assert math.isnan(t.range_vector(now + 0.6, 0.5)[0])  # stale = NaN
     assert t.stale_sensors(now, 0.5) == [1, 2]

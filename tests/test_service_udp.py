@@ -196,8 +196,8 @@ async def test_udp_sim_time_lockstep() -> None:
                 answered.clear()
             setpoints_at_answer.append(len(ap.setpoints()))
 
-        while not svc.configured:
-            await tick()
+        while not svc.configured or svc.last_verdict.verdict.value != "run":
+            await tick()  # configured, and the inputs good for resume_after_s
         ap.set_mode(GUIDED)
         start_cycles = svc.counters["cycles"]
         start_t = t_ns

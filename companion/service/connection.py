@@ -48,6 +48,8 @@ class Connection:
         self.target_component: int | None = None
         self.on_message: Handler | None = None
         self.on_unlocked: Handler | None = None
+        self.on_other: Handler | None = None
+        """HEARTBEATs of other systems after the lock (to notice a second autopilot)."""
         self.counters: Counter[str] = Counter()
         self._waiters: list[_Waiter] = []
         self._peer: Peer = None
@@ -118,6 +120,8 @@ class Connection:
                 return
         if src_sys != self.target_system:
             self._ignored("other_system", msg)
+            if self.on_other is not None and msg.get_type() == "HEARTBEAT":
+                self.on_other(msg, t_rx)
             return
         if src_comp != self.target_component:
             self._ignored("other_component", msg)

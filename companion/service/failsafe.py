@@ -65,7 +65,7 @@ def assess(
     if pos is None or now - pos.t_rx > limits.position_max_age_s:
         return Assessment(Verdict.STOP, "position stale")
     if tel.position_in_doubt:
-        return Assessment(Verdict.STOP, "position jump")
+        return Assessment(Verdict.STOP, tel.jump_fault or "position jump")
     att = tel.attitude
     if att is None or now - att.t_rx > limits.attitude_max_age_s:
         return Assessment(Verdict.HOLD, "attitude stale")

@@ -79,6 +79,8 @@ class FlightLogWriter:
         self.path: Path | None = None
         self.errors = 0
         self.records = 0
+        self.failing = ""
+        """Why the last write failed ("" while writing works)."""
 
     def header(self, header: dict[str, Any]) -> None:
         self._header = {"type": "header", "version": LOG_VERSION, **header}
@@ -105,9 +107,20 @@ class FlightLogWriter:
             if self._size >= self.max_bytes:
                 self._rotate()
         except OSError as exc:
+            # disk full, read-only, gone: the records are lost, flying goes on; said once
             self.errors += 1
-            log.warning("flight log: %s", exc)
+            why = exc.strerror or str(exc)
+            if why != self.failing:
+                log.warning("flight log: %s (records are being lost)", exc)
+            self.failing = why
+            if self._file is not None:
+                with contextlib.suppress(OSError):
+                    self._file.close()
             self._file = None
+            return
+        if self.failing:
+            log.info("flight log: writing again (%s)", self.path)
+            self.failing = ""
 
     def _open(self) -> None:
         self.directory.mkdir(parents=True, exist_ok=True)
@@ -136,7 +149,8 @@ class FlightLogWriter:
     def close(self) -> None:
         self.flush()
         if self._file is not None:
-            self._file.close()
+            with contextlib.suppress(OSError):
+                self._file.close()
             self._file = None
 
 

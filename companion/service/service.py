@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import errno
 import logging
 import math
 import signal
@@ -37,7 +38,13 @@ from typing import Any, Protocol
 
 import numpy as np
 
-from companion.config import ConfigError, ServiceConfig, load_config
+from companion.config import (
+    ConfigError,
+    ServiceConfig,
+    latlon_points_xy,
+    load_config,
+    route_problem,
+)
 from companion.geo import GeoPoint, LocalFrame
 from companion.planner.frames import attitude_ned_to_enu, wrap_pi
 from companion.planner.params import PlannerParams
@@ -72,7 +79,7 @@ from companion.service.modes import (
 from companion.service.notify import SystemdNotifier
 from companion.service.setpoints import SetpointFrame, position_target
 from companion.service.signing import SigningKeyError, SigningState, load_key, timestamp_now
-from companion.service.statustext import Severity, StatusTexts, statustext_message
+from companion.service.statustext import Severity, StatusTexts, statustext_messages
 from companion.service.telemetry import Telemetry
 
 log = logging.getLogger("companion.service")
@@ -85,6 +92,15 @@ STREAM_IDS = {
 }
 STREAMS_LOST_S = 2.0
 """Heartbeats without position this long: request the message rates again."""
+EXIT_LINK = 3
+"""`run`'s exit status when the link's port cannot be had (systemd: RestartPreventExitStatus)."""
+LINK_RETRY_S = 2.0
+"""A link that cannot be opened yet (serial device missing, host unknown): retried this often."""
+_LINK_FATAL_ERRNOS = frozenset({errno.EADDRINUSE, errno.EACCES, errno.EADDRNOTAVAIL, errno.EPERM})
+HEARTBEAT_WAIT_SAY_S = 2.0
+"""No autopilot heard this long after start: say so (once)."""
+MISSION_RETRY_S = 5.0
+"""Auto start with an empty mission: download it again this often."""
 MIN_BASE_POINT_SPACING_M = 0.5
 """Base points closer than this to the vehicle when it takes over are taken as passed."""
 
@@ -151,12 +167,19 @@ class Service:
         self.conn = Connection(link, self.codec, self.clock.now)
         self.conn.on_message = self._on_message
         self.conn.on_unlocked = self._on_unlocked_heartbeat
+        self.conn.on_other = self._on_other_heartbeat
+        self._heard: dict[int, float] = {}
+        self._listen_since: float | None = None
+        self._ambiguous_said: list[int] = []
+        self._strangers: set[int] = set()
+        self._stranger_blocks = False
         fs = config.failsafe
         self.tel = Telemetry(
             self.sensors,
             max_speed_mps=fs.max_speed_mps,
             jump_accept_s=fs.jump_accept_s,
             max_jump_m=fs.max_position_jump_m,
+            max_accepted_jump_m=fs.max_accepted_jump_m,
             median_samples=fs.range_median_samples,
         )
         ap = config.autopilot
@@ -206,6 +229,11 @@ class Service:
         self._finish_handled = False
         self._hold: _Hold | None = None
         self._planner_failed = False
+        self._building = False
+        self._build_gen = 0
+        self._build_task: asyncio.Task[Any] | None = None
+        self._route_error = ""
+        self._built_h_d = self.params.h_d_m
         self._shift = np.zeros(3)
         """Sum of the accepted position jumps: planner frame = estimate - shift (ENU m)."""
         self._last_planner_xd: FloatArray | None = None
@@ -213,6 +241,12 @@ class Service:
         self._priming = False
         self._auto_busy = False
         self._auto_done = False
+        self._auto_task: asyncio.Task[None] | None = None
+        self._auto_allowed: set[str] | None = None
+        self._auto_armed = False
+        self._ap_text: tuple[float, str] | None = None
+        self._ap_chunks: dict[int, dict[int, str]] = {}
+        """The autopilot's latest STATUSTEXT of WARNING or worse: (time.monotonic, text)."""
         self._planner_t: float | None = None
         self._next_cycle_t: float | None = None
         self._last_cycle_wall: float | None = None
@@ -224,21 +258,22 @@ class Service:
         self._tasks: list[asyncio.Task[Any]] = []
         self._fatal: BaseException | None = None
         self._counter_snapshot: dict[str, int] = {}
+        self._text_id = 0
+        self._log_failing_said = ""
 
     # === public ============================================================================
 
     async def run(self) -> int:
-        """Run until `stop()`; 0 on a clean stop, 1 after a fatal error."""
+        """Run until `stop()`; 0 on a clean stop, 1 after a fatal error, 2 for a bad signing
+        key, EXIT_LINK (3) when the link's port cannot be had."""
         try:
             self._setup_signing()
         except SigningKeyError as exc:
             log.error("%s", exc)
             return 2
-        try:
-            await self.conn.open()
-        except OSError as exc:
-            log.error("cannot open %s: %s", self.link.name, exc)
-            return 1
+        failed = await self._open_link()
+        if failed is not None:
+            return failed
         log.info(
             "companion service on %s (%s time, %.0f Hz)",
             self.link.name,
@@ -260,6 +295,39 @@ class Service:
         if self._fatal is not None:
             return 1
         return 0
+
+    async def _open_link(self) -> int | None:
+        """Open the link; None when open. A port that cannot be had (in use, not allowed,
+        not an address of this machine) will not come free by retrying: one error line and
+        EXIT_LINK, which the systemd unit does not restart on. Anything else (a serial device
+        not there yet, a host name that does not resolve yet) is said once and retried every
+        LINK_RETRY_S until it opens or the service is stopped (then 0)."""
+        said = False
+        while True:
+            try:
+                await self.conn.open()
+                if said:
+                    log.info("%s open", self.link.name)
+                return None
+            except OSError as exc:
+                why = exc.strerror or str(exc)
+                if exc.errno in _LINK_FATAL_ERRNOS:
+                    log.error("cannot open %s: %s", self.link.name, why)
+                    return EXIT_LINK
+                if not said:
+                    said = True
+                    log.error(
+                        "cannot open %s: %s; retrying every %.0f s",
+                        self.link.name,
+                        why,
+                        LINK_RETRY_S,
+                    )
+                    self.notifier.ready(f"cannot open {self.link.name}: {why}; retrying")
+            self.notifier.watchdog()
+            with contextlib.suppress(TimeoutError):
+                await asyncio.wait_for(self._stop.wait(), LINK_RETRY_S)
+            if self._stop.is_set():
+                return 0
 
     def stop(self) -> None:
         """Ask `run` to return (safe from signal handlers and other tasks)."""
@@ -367,6 +435,8 @@ class Service:
                     ap.type,
                 )
             return
+        if ap.system_id == "auto" and not self._choose_autopilot(src_sys, t_rx):
+            return
         self.kind = kind
         self.vehicle_type = int(msg.type)
         self.conn.lock(src_sys, src_comp)
@@ -396,6 +466,55 @@ class Service:
         )
         self._autopilot_seen.set()
 
+    def _choose_autopilot(self, src_sys: int, t_rx: float) -> bool:
+        """`autopilot.system_id: auto`: True when `src_sys` is the only autopilot heard for
+        auto_id_listen_s since the first heartbeat; with more than one, choose none."""
+        listen = self.cfg.autopilot.auto_id_listen_s
+        self._heard[src_sys] = t_rx
+        if self._listen_since is None:
+            self._listen_since = t_rx
+            if listen > 0:
+                log.info(
+                    "autopilot heartbeat from system %d: listening %.1f s for others",
+                    src_sys,
+                    listen,
+                )
+        if t_rx - self._listen_since < listen:
+            return False
+        recent = sorted(s for s, t in self._heard.items() if t_rx - t <= 2 * listen + 1.0)
+        if len(recent) > 1:
+            if self._ambiguous_said != recent:
+                self._ambiguous_said = recent
+                log.error(
+                    "autopilots of systems %s heard and autopilot.system_id is auto: not "
+                    "choosing one; set autopilot.system_id to the one this companion is wired to",
+                    ", ".join(map(str, recent)),
+                )
+                self.notifier.status(f"several autopilots heard: {recent}; set system_id")
+            return False
+        return True
+
+    def _on_other_heartbeat(self, msg: MAVLinkMessage, t_rx: float) -> None:
+        """A heartbeat of another system after the lock: another autopilot means this
+        companion may not be where it thinks; with system_id auto, no take-over from now."""
+        if autopilot_kind(int(msg.autopilot)) is None or int(msg.type) in (6, 18):
+            return  # a ground station or onboard computer
+        sys_id = msg.get_srcSystem()
+        if sys_id in self._strangers:
+            return
+        self._strangers.add(sys_id)
+        if self.cfg.autopilot.system_id == "auto":
+            self._stranger_blocks = True
+            log.error(
+                "a second autopilot (system %d) is heard besides system %s: no take-over and no "
+                "auto start until autopilot.system_id is set",
+                sys_id,
+                self.conn.target_system,
+            )
+            self._say(f"second autopilot {sys_id} heard: set system_id", Severity.CRITICAL)
+        else:
+            log.warning("another autopilot (system %d) is heard; ignored", sys_id)
+
     def _on_message(self, msg: MAVLinkMessage, t_rx: float) -> None:
         mtype = msg.get_type()
         if mtype == "TIMESYNC":
@@ -405,13 +524,37 @@ class Service:
             self._on_autopilot_heartbeat(t_rx)
         reboots, jumps = self.tel.reboots, self.tel.jumps_accepted
         self.tel.update(msg, t_rx)
+        if self.tel.notices:
+            for text in self.tel.notices:
+                self._say(text, Severity.ERROR)
+            self.tel.notices.clear()
         if self.tel.reboots != reboots:
             log.warning("autopilot time went backwards: reboot? reconfiguring")
             self._reconfigure.set()
         if self.tel.jumps_accepted != jumps:
             self._position_jumped()
-        if mtype == "HEARTBEAT" and self.ownership.engaged:
-            self._update_ownership(self.clock.now(), allow_engage=False)
+        if mtype == "HEARTBEAT":
+            if self.ownership.engaged:
+                self._update_ownership(self.clock.now(), allow_engage=False)
+            self._watch_auto_start()
+        elif mtype == "STATUSTEXT" and int(msg.severity) <= Severity.WARNING:
+            self._autopilot_text(msg)
+
+    def _autopilot_text(self, msg: MAVLinkMessage) -> None:
+        """Keep the autopilot's latest warning, its chunks (MAVLink 2 id/chunk_seq) joined."""
+        raw = msg.text
+        text = (raw if isinstance(raw, str) else bytes(raw).decode("utf-8", "replace")).rstrip(
+            "\x00"
+        )
+        text_id, seq = int(getattr(msg, "id", 0)), int(getattr(msg, "chunk_seq", 0))
+        if text_id:
+            parts = self._ap_chunks.setdefault(text_id, {})
+            if len(self._ap_chunks) > 8:  # bounded: keep the newest few
+                self._ap_chunks.pop(next(iter(self._ap_chunks)))
+            if seq < 16:
+                parts[seq] = text
+            text = "".join(parts[i] for i in sorted(parts))
+        self._ap_text = (time.monotonic(), text)
 
     def _position_jumped(self) -> None:
         """The position estimate jumped for good (estimator reset). The planner keeps its
@@ -459,7 +602,7 @@ class Service:
         next_t = self.clock.now()
         while True:
             now = self.clock.now()
-            self._tick(now)
+            self._safe_tick(now)
             next_t += self.period_s
             delay = next_t - self.clock.now()
             if delay < 0:
@@ -470,7 +613,7 @@ class Service:
 
     def _sim_tick(self, now: float) -> None:
         if self._next_cycle_t is None or now >= self._next_cycle_t - 1e-9:
-            self._tick(now)
+            self._safe_tick(now)
             nxt = (self._next_cycle_t if self._next_cycle_t is not None else now) + self.period_s
             self._next_cycle_t = nxt if nxt > now else now + self.period_s
 
@@ -495,6 +638,13 @@ class Service:
                 self._report_counters()
             if self.flight_log is not None:
                 self.flight_log.flush()
+                failing = self.flight_log.failing
+                if failing != self._log_failing_said:
+                    if failing:
+                        self._say(f"flight log failing: {failing}", Severity.WARNING)
+                    else:
+                        self._say("flight log writing again")
+                    self._log_failing_said = failing
 
     def _loop_healthy(self, wall: float) -> bool:
         if self.sim_time:
@@ -515,7 +665,13 @@ class Service:
     # === supervisor: configure, route, auto start ==========================================
 
     async def _supervise(self) -> None:
-        await self._autopilot_seen.wait()
+        with contextlib.suppress(TimeoutError):
+            await asyncio.wait_for(self._autopilot_seen.wait(), HEARTBEAT_WAIT_SAY_S)
+        if not self._autopilot_seen.is_set():
+            log.warning("waiting for autopilot heartbeat on %s", self.link.name)
+            self.notifier.status(f"waiting for autopilot heartbeat on {self.link.name}")
+            await self._autopilot_seen.wait()
+            log.info("autopilot heartbeat heard on %s", self.link.name)
         while True:
             self._reconfigure.clear()
             self.configured = False
@@ -544,7 +700,7 @@ class Service:
                 failed.append(name)
                 log.warning("message interval for %s: %s", name, exc)
         if failed:
-            self._say(f"rate request failed: {','.join(failed)}"[:50], Severity.WARNING)
+            self._say(f"rate request failed: {','.join(failed)}", Severity.WARNING)
         home_id = STREAM_IDS["HOME_POSITION"]
         said = False
         while True:
@@ -563,16 +719,28 @@ class Service:
                 self._say("waiting for home and position")
         self._update_frame()
         if self.cfg.route.source == "mission":
-            items = await download_mission(
-                self.conn, self.cfg.autopilot.command_timeout_s, self.cfg.autopilot.command_retries
-            )
-            assert self.kind is not None
-            self._mission_geo = mission_waypoints(items, self.kind)
-            n = len(self._mission_geo)
-            if n == 0:
+            await self._load_mission()
+        self._update_frame()
+
+    async def _load_mission(self, quiet: bool = False) -> None:
+        """Download the autopilot's mission; a mission that breaks the route bounds counts
+        as no mission (said, never flown). quiet: say nothing when it is still empty."""
+        items = await download_mission(
+            self.conn, self.cfg.autopilot.command_timeout_s, self.cfg.autopilot.command_retries
+        )
+        assert self.kind is not None
+        geo = mission_waypoints(items, self.kind)
+        problem = route_problem(latlon_points_xy(geo), origin_is_home=False) if geo else ""
+        if problem:
+            self._say(f"mission refused: {problem}", Severity.ERROR)
+            geo = []
+        self._mission_geo = geo
+        n = len(geo)
+        if n == 0:
+            if not quiet:
                 self._say("mission has no waypoints", Severity.WARNING)
-            else:
-                self._say(f"mission: {n} waypoints")
+        else:
+            self._say(f"mission: {n} waypoints")
         self._update_frame()
 
     async def _wait_for(self, pred: Callable[[], bool], timeout_s: float) -> bool:
@@ -594,7 +762,100 @@ class Service:
             await asyncio.sleep(0.001)
 
     async def _auto_start(self) -> None:
-        """Arm, take off and hand over to the route; stops if the pilot changes the mode."""
+        """Run auto start as a task that a mode change by anyone else cancels at once."""
+        task = asyncio.create_task(self._auto_start_steps(), name="auto-start")
+        self._auto_task = task
+        try:
+            await asyncio.wait({task})
+        finally:
+            if not task.done():  # we are being cancelled (shutdown): so is it
+                task.cancel()
+            self._auto_task = None
+            self._auto_allowed = None
+            self._auto_busy = False
+            self._priming = False
+        if task.cancelled():
+            self.counters["auto_start_aborted"] += 1
+            return
+        exc = task.exception()
+        if exc is not None:  # a bug in auto start must not end the process: report it
+            self.counters["auto_start_failed"] += 1
+            log.error("auto start failed", exc_info=exc)
+            self._say(f"auto start failed: internal error {type(exc).__name__}", Severity.ERROR)
+
+    def _allow_modes(self, *names: str) -> None:
+        """Auto start: the modes the vehicle may be in now; any other aborts it."""
+        self._auto_allowed = set(names)
+
+    def _current_mode(self) -> str | None:
+        hb = self.tel.heartbeat
+        if hb is None or self.kind is None:
+            return None
+        return mode_name(self.kind, self.vehicle_type, hb.base_mode, hb.custom_mode)
+
+    def _watch_auto_start(self) -> None:
+        """On each autopilot heartbeat during auto start: a mode we did not ask for (a pilot,
+        a ground station, a failsafe) or a disarm after arming ends auto start at once."""
+        task, allowed = self._auto_task, self._auto_allowed
+        if task is None or task.done() or allowed is None:
+            return
+        hb = self.tel.heartbeat
+        mode = self._current_mode()
+        if hb is None or mode is None:
+            return
+        why = ""
+        if mode not in allowed:
+            why = f"mode changed to {mode}"
+        elif self._auto_armed and not hb.armed:
+            why = "disarmed"
+        if why:
+            self._auto_allowed = None
+            task.cancel()
+            self._say(f"auto start aborted: {why}", Severity.WARNING)
+
+    async def _wait_ready_to_arm(self, deadline: float) -> None:
+        """Until every required input (heartbeat, position, attitude, each required range
+        sensor) is fresh, saying once what is missing; CommandError at the deadline."""
+        said = ""
+        while True:
+            a = assess(self.clock.now(), self.tel, self.limits, self.required_sensors)
+            if a.verdict is Verdict.RUN:
+                return
+            if time.monotonic() >= deadline:
+                raise CommandError(400, f"not arming: {a.reason}")
+            if a.reason != said:
+                said = a.reason
+                self._say(f"auto start: waiting, {a.reason}")
+            await asyncio.sleep(0.05)
+
+    async def _wait_for_route(self) -> bool:
+        """Until there is a base point to fly to (farther than MIN_BASE_POINT_SPACING_M from
+        the vehicle), saying so once; a mission is downloaded again every MISSION_RETRY_S.
+        False when the configured route has nothing to fly (it will not change)."""
+        said = False
+        while True:
+            self._update_frame()
+            state = self._vehicle_state()
+            pts = self.route_source_points
+            if state is not None and pts is not None and len(pts):
+                gaps = np.hypot(*(pts - state.position_enu[:2]).T)
+                if float(np.max(gaps)) >= MIN_BASE_POINT_SPACING_M:
+                    return True
+            if not said:
+                said = True
+                what = "mission empty" if self.cfg.route.source == "mission" else "at the end"
+                self._say(f"auto start: no route ({what}): not taking off", Severity.WARNING)
+            if self.cfg.route.source != "mission":
+                return False
+            await asyncio.sleep(MISSION_RETRY_S)
+            try:
+                await self._load_mission(quiet=True)
+            except MissionError as exc:
+                log.info("mission download: %s", exc)
+
+    async def _auto_start_steps(self) -> None:
+        """Arm, take off and hand over to the route. Refusals (denied, pre-arm checks, no
+        answer) are retried until arm_timeout_s; the autopilot's reason is shown in full."""
         assert self.kind is not None
         a = self.cfg.control.auto_start
         alt = a.takeoff_alt_m if a.takeoff_alt_m is not None else self.params.h_d_m
@@ -602,26 +863,44 @@ class Service:
         if hb is not None and hb.armed:
             self._say("auto start: already armed, waiting for pilot")
             return
+        initial = self._current_mode()
+        if initial is None:
+            return
+        if self._stranger_blocks:
+            self._say("auto start: not with a second autopilot heard", Severity.ERROR)
+            return
         self._auto_busy = True
-        self._say("auto start")
+        self._auto_armed = False
+        self._allow_modes(initial)
+        deadline = time.monotonic() + a.arm_timeout_s
         try:
+            if not await self._wait_for_route():
+                return
+            self._say("auto start")
+            await self._wait_ready_to_arm(deadline)
             if self.kind is AutopilotKind.ARDUPILOT:
                 # GUIDED is refused until the autopilot has a position estimate: retry.
                 guided = set_mode_params(self.kind, "guided", self.vehicle_type)
+                self._allow_modes(initial, "GUIDED")
                 await self._with_retries(
-                    "GUIDED",
-                    lambda: self.commands.set_mode(guided),
-                    a.arm_timeout_s,
-                    a.arm_retry_s,
+                    "GUIDED", lambda: self.commands.set_mode(guided), deadline, a.arm_retry_s
                 )
                 if not await self._wait_for(self._guided, 5.0):
                     raise CommandError(176, "mode did not change to GUIDED")
-            await self._arm_with_retries(a.arm_timeout_s, a.arm_retry_s)
-            if self.kind is AutopilotKind.ARDUPILOT and not self._guided():
-                raise CommandError(176, "mode changed during auto start")
+                self._allow_modes("GUIDED")
+            await self._wait_ready_to_arm(deadline)
+            await self._with_retries(
+                "arming", lambda: self.commands.arm(True), deadline, a.arm_retry_s
+            )
+            await self._wait_for(
+                lambda: self.tel.heartbeat is not None and self.tel.heartbeat.armed, 3
+            )
+            self._auto_armed = True
             home = self.tel.home
             assert home is not None
             target = alt if self.kind is AutopilotKind.ARDUPILOT else home.alt_amsl_m + alt
+            if self.kind is AutopilotKind.PX4:
+                self._allow_modes(initial, "AUTO.TAKEOFF", "AUTO.LOITER")
             try:
                 await self.commands.takeoff(target)
             except CommandDeniedError:
@@ -641,21 +920,29 @@ class Service:
             if self.kind is AutopilotKind.PX4:
                 self._priming = True
                 await self._sleep_service_time(a.prestream_s)
+                self._allow_modes(initial, "AUTO.TAKEOFF", "AUTO.LOITER", "OFFBOARD")
                 await self.commands.set_mode(set_mode_params(self.kind, "guided"))
                 if not await self._wait_for(self._guided, 5.0):
                     raise CommandError(176, "mode did not change to OFFBOARD")
         except CommandError as exc:
             self.counters["auto_start_failed"] += 1
-            self._say(f"auto start failed: {exc}"[:50], Severity.ERROR)
-        finally:
-            self._auto_busy = False
-            self._priming = False
+            why = self._autopilot_reason()
+            self._say(f"auto start failed: {exc}" + (f" ({why})" if why else ""), Severity.ERROR)
+
+    def _autopilot_reason(self) -> str:
+        """The autopilot's latest STATUSTEXT of warning or worse in the last 10 s, in full."""
+        if self._ap_text is None:
+            return ""
+        t, text = self._ap_text
+        return text if time.monotonic() - t <= 10.0 else ""
 
     async def _with_retries(
-        self, what: str, command: Callable[[], Awaitable[Any]], timeout_s: float, retry_s: float
+        self, what: str, command: Callable[[], Awaitable[Any]], deadline: float, retry_s: float
     ) -> None:
-        """Send a command until the autopilot accepts it or timeout_s (wall clock) passes."""
-        deadline = time.monotonic() + timeout_s
+        """Send a command until the autopilot accepts it or the (time.monotonic) deadline
+        passes: a refusal (DENIED, FAILED, TEMPORARILY_REJECTED), a pre-arm STATUSTEXT and
+        no answer are all retried; each new reason is logged in full."""
+        last = ""
         while True:
             try:
                 await command()
@@ -663,12 +950,12 @@ class Service:
             except CommandError as exc:
                 if time.monotonic() >= deadline:
                     raise
-                log.info("%s refused (%s); retrying", what, exc)
-                await asyncio.sleep(retry_s)
-
-    async def _arm_with_retries(self, timeout_s: float, retry_s: float) -> None:
-        await self._with_retries("arming", lambda: self.commands.arm(True), timeout_s, retry_s)
-        await self._wait_for(lambda: self.tel.heartbeat is not None and self.tel.heartbeat.armed, 3)
+                why = self._autopilot_reason()
+                reason = f"{exc}" + (f"; autopilot: {why}" if why else "")
+                if reason != last:
+                    last = reason
+                    log.warning("%s refused (%s); retrying until arm_timeout_s", what, reason)
+                await self._sleep_service_time(retry_s)  # simulated time in sim mode
 
     def _climbing(self) -> bool:
         pos = self.tel.position
@@ -684,6 +971,23 @@ class Service:
 
     # === the cycle =========================================================================
 
+    def _safe_tick(self, now: float) -> None:
+        """`_tick`, but a bug in it holds the vehicle and is reported instead of ending the
+        process (which would leave the vehicle in GUIDED/OFFBOARD with nobody commanding)."""
+        try:
+            self._tick(now)
+        except Exception:
+            self.counters["cycle_errors"] += 1
+            if self.counters["cycle_errors"] <= 5:
+                log.exception("cycle failed; holding")
+            self._say("internal error: holding", Severity.CRITICAL)
+            with contextlib.suppress(Exception):
+                if self.ownership.engaged:
+                    sp = self._hold_setpoint()
+                    if sp is not None:
+                        self._send_setpoint(sp, now)
+                self._send_texts(now)
+
     def _tick(self, now: float) -> None:
         """One cycle at service time `now`: ownership, failsafe, planner or hold, setpoint."""
         self._last_cycle_wall = time.monotonic()
@@ -691,7 +995,10 @@ class Service:
         if not self.frame_frozen:
             self._update_frame()
         self._check_streams(now)
-        events = self._update_ownership(now, allow_engage=self.configured and not self._auto_busy)
+        events = self._update_ownership(
+            now,
+            allow_engage=self.configured and not self._auto_busy and not self._stranger_blocks,
+        )
         assessment = assess(now, self.tel, self.limits, self.required_sensors)
         verdict, fs_events = self.failsafe.update(now, assessment)
         commanding = self.ownership.engaged or self._priming
@@ -724,10 +1031,15 @@ class Service:
             self._send_setpoint(sp, now)
         self.health = self._health(verdict.verdict, sp_kind)
         self.last_verdict = verdict
-        for sev, text in self.texts.drain(now):
-            self.conn.send(statustext_message(sev, text))
+        self._send_texts(now)
         if self.flight_log is not None:
             self.flight_log.write(self._cycle_record(now, verdict, result, sp, sp_kind, events))
+
+    def _send_texts(self, now: float) -> None:
+        for sev, text in self.texts.drain(now):
+            self._text_id = self._text_id % 65535 + 1
+            for msg in statustext_messages(sev, text, self._text_id):
+                self.conn.send(msg)
 
     def _check_streams(self, now: float) -> None:
         """Heartbeats but no position for STREAMS_LOST_S: the autopilot forgot our message
@@ -776,6 +1088,10 @@ class Service:
         engaging = before is not OwnState.ENGAGED and after is OwnState.ENGAGED
         if engaging and not self._engage(now):
             self.ownership.release("cannot fly: no route")
+        elif engaging and self.failsafe.current.verdict is not Verdict.RUN:
+            # a hold (or stop) that began before the take-over: announced like any other
+            f = self.failsafe.current
+            self._say(f"{f.verdict.value.upper()}: {f.reason}", Severity.CRITICAL)
         if before is OwnState.ENGAGED and after is not OwnState.ENGAGED:
             self.counters["released"] += 1
             self._planner_t = None
@@ -864,12 +1180,55 @@ class Service:
             self.route_finished.set()
             return
         arrival = self.cfg.route.arrival_heading_deg
-        route = Route(
-            np.vstack([here, remaining]),
-            state.yaw_rad,
-            None if arrival is None else math.radians(arrival),
-        )
-        self.planner = self.planner_factory(self.params, self.sensors, route, state.position_enu)
+        points = np.vstack([here, remaining])
+        heading = state.yaw_rad
+        arrival_rad = None if arrival is None else math.radians(arrival)
+        start = state.position_enu.copy()
+        self.planner = None
+        self._build_gen += 1
+        gen = self._build_gen
+        self._built_h_d = self.params.h_d_m
+        self._seg_start = here.copy()
+        self._planner_t = None
+        self.last_setpoint = None  # X_d starts at the vehicle: nothing to compare on resume
+        self._last_planner_xd = None
+
+        params = self.params
+
+        def build() -> tuple[PlannerLike, Route]:
+            route = Route(points, heading, arrival_rad)
+            return self.planner_factory(params, self.sensors, route, start), route
+
+        if self.sim_time:
+            # lockstep: the simulator waits for us, so building here costs no real-time cycle
+            try:
+                self._planner_built(gen, *build())
+            except Exception as exc:
+                self._route_failed(exc)
+            return
+        # real time: a long route must not stop heartbeats and setpoints (hold meanwhile)
+        self._building = True
+        task = asyncio.get_running_loop().create_task(asyncio.to_thread(build))
+        task.add_done_callback(lambda t: self._build_done(gen, t))
+        self._build_task = task
+
+    def _build_done(self, gen: int, task: asyncio.Task[tuple[PlannerLike, Route]]) -> None:
+        if gen != self._build_gen or task.cancelled():
+            return
+        self._building = False
+        exc = task.exception()
+        if exc is not None:
+            self._route_failed(exc)
+            return
+        self._planner_built(gen, *task.result())
+
+    def _planner_built(self, gen: int, planner: PlannerLike, route: Route) -> None:
+        if gen != self._build_gen:
+            return
+        self.planner = planner
+        self._route_error = ""
+        if self.params.h_d_m != self._built_h_d:  # changed while it was being built
+            planner.set_desired_height(self.params.h_d_m)
         if self.flight_log is not None:
             self.flight_log.write(
                 {
@@ -880,12 +1239,23 @@ class Service:
                     "arrival_heading_rad": route.arrival_heading_rad,
                 }
             )
-        self._seg_start = here.copy()
-        self._planner_t = None
-        self.last_setpoint = None  # X_d starts at the vehicle: nothing to compare on resume
-        self._last_planner_xd = None
         self.counters["planner_starts"] += 1
-        log.info("planner started at %s with %d base points", np.round(here, 2), len(remaining))
+        log.info(
+            "planner started at %s with %d base points",
+            np.round(route.base_points[0], 2),
+            len(route.base_points) - 1,
+        )
+
+    def _route_failed(self, exc: BaseException) -> None:
+        """The route or planner could not be built: hold where the vehicle is and say why
+        (never end the process with the vehicle in GUIDED/OFFBOARD)."""
+        self.planner = None
+        self._building = False
+        self._planner_failed = True
+        self._route_error = str(exc)
+        self.counters["route_build_failed"] += 1
+        log.error("cannot fly the route: %s; holding", exc)
+        self._say(f"cannot fly route: {exc}: holding", Severity.CRITICAL)
 
     def _step_planner(self, now: float) -> StepResult | None:
         estimate = self._vehicle_state()
@@ -903,7 +1273,7 @@ class Service:
                 log.info("X_d %.1f m from the vehicle: restarting the planner here", gap)
                 self._start_planner(state)
         if self.planner is None:
-            return None
+            return None  # route complete, being built, or not flyable: the caller holds
         dt = self.period_s if self._planner_t is None else now - self._planner_t
         dt = min(max(dt, 0.0), 3.0 * self.period_s)
         self._planner_t = now
@@ -961,7 +1331,7 @@ class Service:
             try:
                 await self.commands.set_mode(params)
             except CommandError as exc:
-                self._say(f"{action} refused: {exc}"[:50], Severity.ERROR)
+                self._say(f"{action} refused: {exc}", Severity.ERROR)
 
         self._spawn(change(), f"on-finish-{action}")
 
@@ -1107,6 +1477,7 @@ _PROBLEM_PREFIXES = (
     "input.duplicate",
     "input.time_boot",
     "input.position_jump",
+    "input.rejected_position_jump_fault",
     "link.send_dropped",
     "link.oversized",
     "link.kernel_dropped",
@@ -1114,6 +1485,8 @@ _PROBLEM_PREFIXES = (
     "signing.bad",
     "signing.rejected",
     "service.cycle_overruns",
+    "service.cycle_errors",
+    "service.route_build_failed",
     "service.planner_errors",
     "service.setpoints_refused",
     "statustext.dropped",
@@ -1146,7 +1519,8 @@ async def _run_with_signals(service: Service) -> int:
 
 
 def main(config_path: Path, connection: str | None = None, log_level: str | None = None) -> int:
-    """`companion run --config FILE`: exit 0 on SIGTERM/SIGINT, 2 on a bad config, 1 on error.
+    """`companion run --config FILE`: exit 0 on SIGTERM/SIGINT, 2 on a bad config, 3 when the
+    link's port cannot be had (in use), 1 on another error.
 
     connection, log_level: the command line's `--connection` and `--log-level`.
     """

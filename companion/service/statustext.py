@@ -2,7 +2,9 @@
 
 A token bucket (`max_per_s`, `burst`) bounds the traffic; the same text is not repeated
 within `repeat_interval_s`; the queue is bounded and what does not fit is dropped and
-counted. Texts longer than the 50 characters of one STATUSTEXT are cut.
+counted. A text longer than the 50 characters of one STATUSTEXT goes out in chunks (MAVLink 2
+`id`/`chunk_seq`, as ArduPilot sends long texts; ground stations join them), at most
+MAX_CHUNKS of them; the log always has the whole text.
 """
 
 from __future__ import annotations
@@ -40,9 +42,25 @@ _LOG_LEVEL = {
 }
 
 
+MAX_CHUNKS = 4
+
+
 def statustext_message(severity: Severity, text: str) -> MAVLinkMessage:
+    """One STATUSTEXT with the first 50 bytes of `text` (no chunking)."""
     raw = text.encode("utf-8", "replace")[:TEXT_LEN]
     return mavlink2.MAVLink_statustext_message(int(severity), raw, 0, 0)
+
+
+def statustext_messages(severity: Severity, text: str, msg_id: int) -> list[MAVLinkMessage]:
+    """`text` as STATUSTEXT chunks of 50 bytes sharing `msg_id` (1-65535; 0 = one message)."""
+    raw = text.encode("utf-8", "replace")
+    if len(raw) <= TEXT_LEN:
+        return [mavlink2.MAVLink_statustext_message(int(severity), raw, 0, 0)]
+    chunks = [raw[i : i + TEXT_LEN] for i in range(0, len(raw), TEXT_LEN)][:MAX_CHUNKS]
+    return [
+        mavlink2.MAVLink_statustext_message(int(severity), c, msg_id, seq)
+        for seq, c in enumerate(chunks)
+    ]
 
 
 class StatusTexts:

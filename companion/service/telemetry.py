@@ -8,13 +8,18 @@ edge: centimetres to metres, degrees*1e7 to degrees, millimetres to metres.
 
 DISTANCE_SENSOR readings are mapped to the sensor table by id, and the message's orientation
 must agree with the configured one (within 5 degrees; MAV_SENSOR_ROTATION_CUSTOM is checked
-through its quaternion when one is given). A reading of 0, below the minimum, at/over the
-maximum or 65535 means "nothing detected" and is stored as 0.0: a fresh reading of nothing is
-valid data. NaN in `range_vector` is reserved for a missing or stale reading.
+through its quaternion when one is given), and so must its min/max_distance (`limits_problem`):
+a message whose limits contradict the configured ones is refused and reported, never used.
+A reading of 0, at/over the configured maximum or 65535 means "nothing detected" and is stored
+as 0.0: a fresh reading of nothing is valid data. A reading below the configured minimum is
+"too close to measure" and is stored as the minimum range (something is there, at most that
+far). NaN in `range_vector` is reserved for a missing or stale reading.
 
 time_boot_ms ordering: an older stamp than the last one (reordered or duplicated datagrams)
-is dropped; a jump back of more than REBOOT_BACKSTEP_MS is an autopilot reboot, which resets
-the cache and is reported via `reboots`.
+is dropped. A stamp far ahead of the autopilot's clock, or more than REBOOT_BACKSTEP_MS back,
+is dropped as suspect until several messages of two types agree on the new clock (see
+`_in_order`): then a jump back is an autopilot reboot, which resets the cache and is reported
+via `reboots`, and a jump ahead a re-sync.
 """
 
 from __future__ import annotations
@@ -38,6 +43,28 @@ from companion.service.codec import MAVLinkMessage
 log = logging.getLogger("companion.service.telemetry")
 
 REBOOT_BACKSTEP_MS = 3000
+FUTURE_TOLERANCE_MS = 250.0
+"""A stamp this far ahead of the autopilot's clock as known is suspect (less than the
+position's maximum age, so a forged one accepted inside it cannot starve the loop)."""
+CLOCK_AGREE_MS = 1000.0
+CLOCK_EVIDENCE_MSGS = 5
+CLOCK_EVIDENCE_TYPES = 2
+CLOCK_CANDIDATES = 8
+
+
+@dataclass(slots=True)
+class _ClockCandidate:
+    """Stamps that disagree with the known clock (or come before any) but agree with each
+    other: their offsets from the receipt clock, ms."""
+
+    back: bool
+    kinds: set[str]
+    offsets_ms: list[float]
+
+    def median_ms(self) -> float:
+        return float(np.median(self.offsets_ms)) if self.offsets_ms else 0.0
+
+
 LOG_AT_COUNTS = frozenset(10**k for k in range(19))
 """Counts at which a counter is logged: 1, 10, 100, ..."""
 MEDIAN_GAP_S = 0.5
@@ -49,6 +76,31 @@ UINT16_MAX = 65535
 MAV_AUTOPILOT_INVALID = 8
 MAV_TYPE_GCS = 6
 MAV_TYPE_ONBOARD_CONTROLLER = 18
+
+
+LIMIT_TOLERANCE_M = 0.05
+"""How far a DISTANCE_SENSOR's own min/max may differ from the configured ones (cm rounding,
+float truncation) before the two are taken to contradict each other."""
+
+
+def limits_problem(min_cm: int, max_cm: int, min_m: float, max_m: float) -> str:
+    """Why a DISTANCE_SENSOR's min/max_distance (cm) contradict the configured range
+    [min_m, max_m), or "" if they do not. 0/0 (or a max of 0 or 65535) means "not given".
+
+    Refused: min >= max; a sender minimum above the configured one (readings between them
+    would be misread); a sender maximum below the configured one (its "nothing" would be taken
+    as free space out to the configured maximum). A wider sender range is fine: the configured
+    one is what the planner uses."""
+    if max_cm in (0, UINT16_MAX):
+        return ""
+    if min_cm >= max_cm:
+        return f"message limits {min_cm}-{max_cm} cm are not a range"
+    if min_cm * 0.01 > min_m + LIMIT_TOLERANCE_M or max_cm * 0.01 < max_m - LIMIT_TOLERANCE_M:
+        return (
+            f"message limits {min_cm * 0.01:g}-{max_cm * 0.01:g} m "
+            f"differ from the configured {min_m:g}-{max_m:g} m"
+        )
+    return ""
 
 
 @dataclass(frozen=True, slots=True)
@@ -156,12 +208,16 @@ class Telemetry:
         jump_accept_s: float = 1.0,
         max_jump_m: float = 2.0,
         median_samples: int = 1,
+        max_accepted_jump_m: float = 50.0,
     ) -> None:
         self.sensors = sensors
         self.median_samples = median_samples
         self.max_speed_mps = max_speed_mps
         self.jump_accept_s = jump_accept_s
         self.max_jump_m = max_jump_m
+        self.max_accepted_jump_m = max_accepted_jump_m
+        self.jump_fault = ""
+        """Why a persistent position jump is refused (larger than max_accepted_jump_m)."""
         self.jumps_accepted = 0
         self.last_jump_enu = np.zeros(3)
         """The last accepted jump: the position minus where the reported velocity put it."""
@@ -174,6 +230,9 @@ class Telemetry:
         self._boresight_cache: dict[int, FloatArray | None] = {}
         self._quaternion_cache: dict[tuple[float, ...], FloatArray | None] = {}
         self.reboots = 0
+        self.notices: list[str] = []
+        """Faults for the pilot (sensor limits refused, ...): the service drains and says them."""
+        self._limit_problem: dict[int, str] = {}
         self.reset()
 
     def reset(self) -> None:
@@ -187,6 +246,10 @@ class Telemetry:
             deque(maxlen=max(1, self.median_samples)) for _ in range(len(self.sensors))
         ]
         self._last_boot_ms: dict[str, int] = {}
+        self._clock_ref: float | None = None
+        self._last_rx: dict[str, float] = {}
+        """The autopilot's boot clock minus the receipt clock, milliseconds."""
+        self._clock_candidates: list[_ClockCandidate] = []
         self._jump_since: float | None = None
         self._jump_dt = 0.0
 
@@ -211,21 +274,108 @@ class Telemetry:
         self._count(f"rejected_{what}", logging.WARNING, detail and f" ({detail})")
         return False
 
-    def _in_order(self, key: str, time_boot_ms: int) -> bool:
-        """False for a stale or duplicate stamp; a big step back is a reboot (accepted)."""
+    def _in_order(self, key: str, time_boot_ms: int, t_rx: float) -> bool:
+        """False for a stale, duplicate or suspect stamp. Where the autopilot's boot clock is
+        now is the lower median, over the message kinds, of each kind's last accepted stamp
+        plus the receipt time since (so one kind forged ahead cannot move it, and a clock that
+        runs at another rate than ours is followed message by message). A stamp more than
+        FUTURE_TOLERANCE_MS ahead of it, or more than
+        REBOOT_BACKSTEP_MS behind the last stamp of its kind, is held as evidence of a new
+        clock and dropped; only CLOCK_EVIDENCE_MSGS such stamps of CLOCK_EVIDENCE_TYPES
+        message types agreeing with each other, with no stamp of the old clock among them,
+        change the clock (back: a reboot, which resets the cache; ahead: a re-sync). One
+        forged packet can neither reset the cache nor poison the ordering."""
         if time_boot_ms == 0:  # some senders do not stamp
             return True
+        off = time_boot_ms - t_rx * 1000.0
+        ref = self._clock_ref
         last = self._last_boot_ms.get(key)
+        if ref is None:
+            # the first stamps: ordered per kind only, until several agree on the clock
+            self._first_clock(key, off, t_rx)
+            if self._clock_ref is None:
+                if last is not None and time_boot_ms <= last:
+                    self._count("out_of_order" if time_boot_ms < last else "duplicate")
+                    return False
+                self._last_boot_ms[key] = time_boot_ms
+                self._last_rx[key] = t_rx
+                return True
+            # the clock has just been agreed on: this stamp is judged by it like any other
+            last = self._last_boot_ms.get(key)
+        expected = self._expected_stamp(t_rx)
+        ahead = expected is not None and time_boot_ms > expected + FUTURE_TOLERANCE_MS
+        back = last is not None and last - time_boot_ms > REBOOT_BACKSTEP_MS
+        if ahead or back:
+            return self._clock_evidence(key, time_boot_ms, off, t_rx, back)
+        self._clock_candidates.clear()
         if last is not None and time_boot_ms <= last:
-            if last - time_boot_ms > REBOOT_BACKSTEP_MS:
-                self._count("time_boot_backwards", logging.WARNING, f" ({key})")
-                self.reboots += 1
-                counters, reboots = self.counters, self.reboots
-                self.reset()
-                self.counters, self.reboots = counters, reboots
-            else:
-                self._count("out_of_order" if time_boot_ms < last else "duplicate")
-                return False
+            self._count("out_of_order" if time_boot_ms < last else "duplicate")
+            return False
+        self._last_boot_ms[key] = time_boot_ms
+        self._last_rx[key] = t_rx
+        return True
+
+    def _expected_stamp(self, t_rx: float) -> float | None:
+        """The autopilot's clock now (ms) from every kind's last accepted stamp, or None."""
+        rx = self._last_rx
+        vals = sorted(
+            stamp + (t_rx - rx[k]) * 1000.0 for k, stamp in self._last_boot_ms.items() if k in rx
+        )
+        return vals[(len(vals) - 1) // 2] if vals else None
+
+    def _candidate(self, key: str, off: float, back: bool) -> _ClockCandidate | None:
+        """Add a stamp to the group of stamps it agrees with (a new one if none; at most
+        CLOCK_CANDIDATES groups, so stamps forged between good ones stay apart from them);
+        the group once it is evidence enough (then all groups are dropped), else None."""
+        for c in self._clock_candidates:
+            if c.back == back and abs(off - c.median_ms()) <= CLOCK_AGREE_MS:
+                break
+        else:
+            c = _ClockCandidate(back, set(), [])
+            self._clock_candidates.append(c)
+            if len(self._clock_candidates) > CLOCK_CANDIDATES:
+                self._clock_candidates.pop(0)
+        c.kinds.add(key.split(".")[0])
+        c.offsets_ms.append(off)
+        if len(c.offsets_ms) < CLOCK_EVIDENCE_MSGS or len(c.kinds) < CLOCK_EVIDENCE_TYPES:
+            return None
+        self._clock_candidates.clear()
+        return c
+
+    def _first_clock(self, key: str, off: float, t_rx: float) -> None:
+        """Gather the first stamps; when enough agree, their median is the clock, and no
+        kind's last stamp may stay ahead of it by more than FUTURE_TOLERANCE_MS (a forged
+        first stamp far ahead would otherwise hold that kind back)."""
+        c = self._candidate(key, off, back=False)
+        if c is None:
+            return
+        self._clock_ref = c.median_ms()
+        cap = int(self._clock_ref + t_rx * 1000.0 + FUTURE_TOLERANCE_MS)
+        for k, v in self._last_boot_ms.items():
+            if v > cap:
+                self._last_boot_ms[k], self._last_rx[k] = cap, t_rx
+
+    def _clock_evidence(
+        self, key: str, time_boot_ms: int, off: float, t_rx: float, back: bool
+    ) -> bool:
+        c = self._candidate(key, off, back)
+        if c is None:
+            where = "back" if back else "ahead"
+            self._count("time_boot_suspect", logging.WARNING, f" ({key} {where})")
+            return False
+        if back:
+            self._count("time_boot_backwards", logging.WARNING, f" ({key})")
+            self.reboots += 1
+            counters, reboots = self.counters, self.reboots
+            self.reset()
+            self.counters, self.reboots = counters, reboots
+        else:
+            self._count("time_boot_resync", logging.WARNING, f" ({key})")
+            self._last_boot_ms.clear()
+            self._last_rx.clear()
+        # the median: one odd stamp among the evidence does not set the clock
+        self._clock_ref = c.median_ms()
+        self._last_rx[key] = t_rx
         self._last_boot_ms[key] = time_boot_ms
         return True
 
@@ -249,7 +399,7 @@ class Telemetry:
             return self._reject("attitude_nonfinite", f"roll {r} pitch {p} yaw {y}")
         if abs(r) > math.pi + 1e-3 or abs(p) > math.pi / 2 + 1e-3 or abs(y) > 2 * math.pi + 1e-3:
             return self._reject("attitude_range", f"roll {r} pitch {p} yaw {y}")
-        if not self._in_order("ATTITUDE", int(msg.time_boot_ms)):
+        if not self._in_order("ATTITUDE", int(msg.time_boot_ms), t_rx):
             return False
         self.attitude = Attitude(r, p, y, int(msg.time_boot_ms), t_rx)
         return True
@@ -261,7 +411,7 @@ class Telemetry:
             -1_000.0 <= alt <= 50_000.0 and -10_000.0 <= rel <= 50_000.0
         ):
             return self._reject("position_range", f"lat {lat} lon {lon} alt {alt} rel {rel}")
-        if not self._in_order("GLOBAL_POSITION_INT", int(msg.time_boot_ms)):
+        if not self._in_order("GLOBAL_POSITION_INT", int(msg.time_boot_ms), t_rx):
             return False
         vel = (msg.vx * 0.01, msg.vy * 0.01, msg.vz * 0.01)
         last = self.position
@@ -272,8 +422,18 @@ class Telemetry:
                 # measured on its first sample, where the velocity prediction is best
                 self._jump_ned = self._residual_ned.copy()
             if t_rx - self._jump_since < self.jump_accept_s:
-                self._last_boot_ms["GLOBAL_POSITION_INT"] = last.time_boot_ms
+                self._unaccept_position(last)
                 return self._reject("position_jump")
+            size = float(np.linalg.norm(self._jump_ned))
+            if size > self.max_accepted_jump_m:
+                # too big to be an estimator reset the plan can follow: a fault, never accepted
+                self._unaccept_position(last)
+                if not self.jump_fault:
+                    limit = self.max_accepted_jump_m
+                    self.jump_fault = f"position jump of {size:.0f} m over the {limit:g} m limit"
+                    self.notices.append(f"{self.jump_fault}: stopped")
+                    log.error("%s: not accepted; stopped", self.jump_fault)
+                return self._reject("position_jump_fault")
             self._count("position_jump_accepted", logging.WARNING)
             n, e, d = (float(v) for v in self._jump_ned)
             self.last_jump_enu = np.array([e, n, -d])
@@ -284,6 +444,7 @@ class Telemetry:
                 t_rx - self._jump_since,
             )
         self._jump_since = None
+        self.jump_fault = ""
         self.position = Position(lat, lon, alt, rel, vel, int(msg.time_boot_ms), t_rx)
         return True
 
@@ -310,6 +471,12 @@ class Telemetry:
         residual = float(np.linalg.norm(self._residual_ned))
         dt_accel = dt if self._jump_since is None else min(dt, self._jump_dt)
         return residual > self.max_jump_m + 0.5 * MAX_ACCEL_MPS2 * dt_accel * dt_accel
+
+    def _unaccept_position(self, last: Position) -> None:
+        """A position passed the stamp checks but is rejected: its kind's clock stays at the
+        last accepted one."""
+        self._last_boot_ms["GLOBAL_POSITION_INT"] = last.time_boot_ms
+        self._last_rx["GLOBAL_POSITION_INT"] = last.t_rx
 
     @staticmethod
     def _dt(last: Position, time_boot_ms: int, t_rx: float) -> float:
@@ -360,20 +527,28 @@ class Telemetry:
             return self._reject(
                 "sensor_orientation_mismatch", f"id {int(msg.id)} orientation {orientation}"
             )
-        if not self._in_order(f"DISTANCE_SENSOR.{index}", int(msg.time_boot_ms)):
+        if not self._in_order(f"DISTANCE_SENSOR.{index}", int(msg.time_boot_ms), t_rx):
             return False
         spec = self.sensors.specs[index]
         lo, hi = spec.min_range_m, spec.max_range_m
         mn, mx, cur = int(msg.min_distance), int(msg.max_distance), int(msg.current_distance)
-        if 0 < mx < UINT16_MAX and mn < mx:  # the sender's own limits, when it gives sane ones
-            lo, hi = max(lo, mn * 0.01), min(hi, mx * 0.01)
+        problem = limits_problem(mn, mx, lo, hi)
+        if problem:
+            # The sender's limits contradict the configured ones: one of the two is wrong,
+            # and a reading cannot be trusted to mean what the planner will take it for.
+            if self._limit_problem.get(index) != problem:
+                self._limit_problem[index] = problem
+                self.notices.append(f"sensor {spec.sensor_id} refused: {problem}")
+            return self._reject("sensor_limits", f"sensor {spec.sensor_id}: {problem}")
+        self._limit_problem.pop(index, None)
         d = cur * 0.01
         if cur == 0 or cur == UINT16_MAX:
             self._count("range_none", detail=f" (sensor {spec.sensor_id}: {cur} cm)")
             d = 0.0
         elif d < lo:
+            # too close to measure, not "nothing": something is at most at the minimum range
             self._count("range_below_min", detail=f" (sensor {spec.sensor_id}: {cur} cm)")
-            d = 0.0
+            d = lo if lo > 0 else d
         elif d >= hi:
             self._count("range_at_max", detail=f" (sensor {spec.sensor_id}: {cur} cm)")
             d = 0.0
