@@ -492,6 +492,7 @@ async def test_nothing_heard_is_said_once(caplog: pytest.LogCaptureFixture) -> N
     assert await asyncio.wait_for(task, 10) == 0
     said = [r for r in caplog.records if "waiting for autopilot heartbeat on" in r.getMessage()]
     assert len(said) == 1 and "udpin:127.0.0.1:" in said[0].getMessage()
+    assert "the autopilot must send here first" in said[0].getMessage()
 
 
 async def test_autopilot_killed_mid_flight_and_restarted(caplog: pytest.LogCaptureFixture) -> None:
@@ -654,7 +655,7 @@ async def test_missing_serial_device_is_said_and_retried(
     )
     out = io.StringIO()
     assert check_config(path, out) == 0  # a USB device may come later: a note, not an error
-    assert "does not exist (yet)" in out.getvalue()
+    assert "No such file or directory" in out.getvalue()
     svc = Service(cfg, open_link(cfg.link.spec), notifier=SystemdNotifier({}))
     task = asyncio.create_task(svc.run())
     await asyncio.sleep(5.0)  # two retries

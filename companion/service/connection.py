@@ -23,7 +23,15 @@ from companion.service.telemetry import LOG_AT_COUNTS
 
 log = logging.getLogger(__name__)
 
-WAITING_NOTICE_S = 5.0
+
+def waiting_hint(link_name: str) -> str:
+    """What a service that hears no autopilot on link_name is waiting for: a link both ends
+    expect the other to open first is the usual first-run puzzle."""
+    if link_name.startswith("udpin:"):
+        return "listening; the autopilot must send here first"
+    return "sending heartbeats; no reply yet"
+
+
 """Wall seconds without a heartbeat from any autopilot before saying, once, what we wait for."""
 
 Handler = Callable[[MAVLinkMessage, float], None]
@@ -53,35 +61,11 @@ class Connection:
         self.counters: Counter[str] = Counter()
         self._waiters: list[_Waiter] = []
         self._peer: Peer = None
-        self._heard_heartbeat = False
-        self._waiting_notice: asyncio.TimerHandle | None = None
 
     async def open(self) -> None:
         await self.link.open(self._on_bytes)
-        self._waiting_notice = asyncio.get_running_loop().call_later(
-            WAITING_NOTICE_S, self._say_waiting
-        )
-
-    def _say_waiting(self) -> None:
-        """Once, if no autopilot heartbeat came: say where we listen (a silent service with
-        a link both ends expect the other to open is the usual first-run puzzle)."""
-        if self._heard_heartbeat or self.target_system is not None:
-            return
-        how = (
-            "listening; the autopilot must send here first"
-            if self.link.name.startswith("udpin:")
-            else "sending heartbeats; no reply yet"
-        )
-        log.warning(
-            "waiting for autopilot heartbeat on %s (%s; nothing heard for %.0f s)",
-            self.link.name,
-            how,
-            WAITING_NOTICE_S,
-        )
 
     async def close(self) -> None:
-        if self._waiting_notice is not None:
-            self._waiting_notice.cancel()
         for w in self._waiters:
             if not w.future.done():
                 w.future.cancel()
@@ -107,8 +91,6 @@ class Connection:
         src_sys, src_comp = msg.get_srcSystem(), msg.get_srcComponent()
         if self.target_system is None:
             mtype = msg.get_type()
-            if mtype == "HEARTBEAT":
-                self._heard_heartbeat = True
             if mtype == "HEARTBEAT" and self.on_unlocked is not None:
                 self.on_unlocked(msg, t_rx)
             elif mtype == "TIMESYNC" and self.on_message is not None:

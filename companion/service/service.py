@@ -54,7 +54,7 @@ from companion.planner.types import FloatArray, Setpoint, StepResult, VehicleSta
 from companion.service.clock import MonotonicClock, SimClock
 from companion.service.codec import MavCodec, MAVLinkMessage, mavlink2
 from companion.service.commands import CommandClient, CommandDeniedError, CommandError
-from companion.service.connection import Connection
+from companion.service.connection import Connection, waiting_hint
 from companion.service.failsafe import Assessment, Failsafe, Limits, Verdict, assess
 from companion.service.flightlog import FlightLogWriter
 from companion.service.identity import Health, companion_system_id, heartbeat_message
@@ -668,8 +668,9 @@ class Service:
         with contextlib.suppress(TimeoutError):
             await asyncio.wait_for(self._autopilot_seen.wait(), HEARTBEAT_WAIT_SAY_S)
         if not self._autopilot_seen.is_set():
-            log.warning("waiting for autopilot heartbeat on %s", self.link.name)
-            self.notifier.status(f"waiting for autopilot heartbeat on {self.link.name}")
+            waiting = f"waiting for autopilot heartbeat on {self.link.name}"
+            log.warning("%s (%s)", waiting, waiting_hint(self.link.name))
+            self.notifier.status(waiting)
             await self._autopilot_seen.wait()
             log.info("autopilot heartbeat heard on %s", self.link.name)
         while True:
