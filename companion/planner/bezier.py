@@ -14,6 +14,7 @@ Speed: the per-cycle calls (`point`, `velocity`, `unit_tangent`, `heading`, `spe
 from __future__ import annotations
 
 import bisect
+import itertools
 import math
 from dataclasses import dataclass, field
 from typing import NamedTuple
@@ -93,8 +94,15 @@ class CubicBezier:
         whole, halves = quad[:n], quad[n : 2 * n] + quad[2 * n :]
         knots = [0.0]
         cum = [0.0]
+        cusps = self._cusps()
         for k in range(n):
-            if abs(whole[k] - halves[k]) > 1e-13 * (1.0 + whole[k]):
+            inside = [r for r in cusps if a[k] < r < b[k]]
+            if inside:
+                # |B'| has a kink at a cusp: integrate up to it and from it, never across.
+                edges = [float(a[k]), *inside, float(b[k])]
+                for lo, hi in itertools.pairwise(edges):
+                    self._refine(lo, hi, 0, knots, cum)
+            elif abs(whole[k] - halves[k]) > 1e-13 * (1.0 + whole[k]):
                 self._refine(float(a[k]), float(b[k]), 0, knots, cum)
             else:
                 knots.append(float(b[k]))
@@ -102,6 +110,21 @@ class CubicBezier:
         table = (tuple(knots), tuple(cum))
         object.__setattr__(self, "_table", table)
         return table
+
+    def _cusps(self) -> list[float]:
+        """The t in (0, 1) where B'(t) = 0 (a cusp, or a straight curve doubling back),
+        sorted: both components of the hodograph vanish there."""
+        (x0, y0), (x1, y1), (x2, y2) = self._h
+        scale = 1.0 + max(abs(v) for v in (x0, y0, x1, y1, x2, y2))
+        found: list[float] = []
+        for c2, c1, c0 in ((x2, x1, x0), (y2, y1, y0)):
+            roots = np.roots([c2, c1, c0]) if abs(c2) + abs(c1) > 0.0 else np.empty(0)
+            for r in roots:
+                if abs(r.imag) < 1e-12 and 0.0 < r.real < 1.0:
+                    t = float(r.real)
+                    if float(self.speeds(np.array(t))) <= 1e-9 * scale:
+                        found.append(t)
+        return sorted(set(found))
 
     def _refine(self, a: float, b: float, depth: int, knots: list[float], cum: list[float]) -> None:
         """Append table intervals covering [a, b], halving where the quadrature has not
