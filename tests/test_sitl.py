@@ -185,7 +185,6 @@ def test_flight_with_sensors_wired_to_the_autopilot(runs: dict[str, Any]) -> Non
     assert_flight(_get(runs, "wired-wall"))
 
 
-@pytest.mark.xfail(strict=False, reason="needs auto-start retry")
 def test_default_ekf_boot_then_fly(runs: dict[str, Any]) -> None:
     """Default EKF3, service started as soon as SITL's heartbeat is seen: auto start must ride
     out the boot-time refusals of GUIDED and arming, then fly."""
