@@ -31,6 +31,7 @@ Pure functions over numpy arrays; frame local ENU x, y metres.
 from __future__ import annotations
 
 import math
+from collections.abc import Generator
 from dataclasses import dataclass
 
 import numpy as np
@@ -192,7 +193,25 @@ class AvoidanceRequest:
 
 
 def plan_detour(route: Route, request: AvoidanceRequest, params: PlannerParams) -> Detour | None:
-    """Best feasible correction of the path (see the module docstring), or None (blocked)."""
+    """Best feasible correction of the path (see the module docstring), or None (blocked):
+    `detour_search` run to its end."""
+    search = detour_search(route, request, params)
+    while True:
+        try:
+            next(search)
+        except StopIteration as done:
+            result: Detour | None = done.value
+            return result
+
+
+def detour_search(
+    route: Route, request: AvoidanceRequest, params: PlannerParams
+) -> Generator[None, None, Detour | None]:
+    """`plan_detour` in work units: yields once after the set-up (the projections and the
+    candidate list) and once after each candidate tried and rejected, and returns the
+    Detour or None.
+    A caller with a budget of units per cycle can resume it next cycle (the search is
+    deterministic and clock-free); run to its end it is exactly `plan_detour`."""
     d_m = params.d_min_m + params.clearance_margin_m
     poly = route.polyline()
     obstacles = request.obstacles_xy
@@ -260,14 +279,17 @@ def plan_detour(route: Route, request: AvoidanceRequest, params: PlannerParams) 
 
     tails: dict[float, list[CubicBezier]] = {}  # the route after each rejoin point tried
     on_route = abs(l0) < 0.05 and request.start_dir is not None
+    yield
     for cost, w, side, leave, transition in _with_transitions(
         candidates, l0, s0, s_a, d_m, params, on_route
     ):
         built = _build(route, poly, request, params, s0, leave, transition, s_b, w, d_m, tails)
         if built is None:
+            yield
             continue
         detour_segments, rejoin_s, tail = built
         if max_abs_curvature(detour_segments) > 1.0 / params.min_turn_radius_m * 1.001:
+            yield
             continue
         tail_len = 0.0
         tail_check: list[CubicBezier] = []
@@ -279,6 +301,7 @@ def plan_detour(route: Route, request: AvoidanceRequest, params: PlannerParams) 
         if _comes_closer(
             [*detour_segments, *tail_check], obstacles, required, inflation, start_floor
         ):
+            yield
             continue
         extra = sum(seg.length for seg in detour_segments) - (rejoin_s - s0)
         return Detour(

@@ -118,12 +118,9 @@ class CubicBezier:
         scale = 1.0 + max(abs(v) for v in (x0, y0, x1, y1, x2, y2))
         found: list[float] = []
         for c2, c1, c0 in ((x2, x1, x0), (y2, y1, y0)):
-            roots = np.roots([c2, c1, c0]) if abs(c2) + abs(c1) > 0.0 else np.empty(0)
-            for r in roots:
-                if abs(r.imag) < 1e-12 and 0.0 < r.real < 1.0:
-                    t = float(r.real)
-                    if float(self.speeds(np.array(t))) <= 1e-9 * scale:
-                        found.append(t)
+            for t in _real_roots_quadratic(c2, c1, c0):
+                if 0.0 < t < 1.0 and float(self.speeds(np.array(t))) <= 1e-9 * scale:
+                    found.append(t)
         return sorted(set(found))
 
     def _refine(self, a: float, b: float, depth: int, knots: list[float], cum: list[float]) -> None:
@@ -360,6 +357,22 @@ class CubicBezier:
     def sample(self, n: int) -> FloatArray:
         """n points at uniform t, including both ends, (n, 2)."""
         return self.evaluate(np.linspace(0.0, 1.0, n))
+
+
+def _real_roots_quadratic(c2: float, c1: float, c0: float) -> list[float]:
+    """Real roots of c2 t^2 + c1 t + c0 (closed form, plain floats): a pair whose imaginary
+    part is below 1e-12 counts as one real root. None when c2 = c1 = 0."""
+    if c2 == 0.0:
+        return [] if c1 == 0.0 else [-c0 / c1]
+    mid = -c1 / (2.0 * c2)
+    disc = c1 * c1 - 4.0 * c2 * c0
+    if disc < 0.0:
+        return [mid] if math.sqrt(-disc) / (2.0 * abs(c2)) < 1e-12 else []
+    # The larger-magnitude root first, the other from the product c0 / c2 (no cancellation).
+    q = -0.5 * (c1 + math.copysign(math.sqrt(disc), c1))
+    if q == 0.0:
+        return [mid]
+    return [q / c2, c0 / q]
 
 
 def segment_through(

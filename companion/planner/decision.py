@@ -55,14 +55,18 @@ def chord_steepness(points: FloatArray, min_separation_m: float) -> tuple[FloatA
     n = len(points)
     if n < 2:
         return np.zeros(n), np.full(n, -1, dtype=np.intp)
-    dz = points[:, None, 2] - points[None, :, 2]
-    dx = points[:, None, 0] - points[None, :, 0]
-    dy = points[:, None, 1] - points[None, :, 1]
+    z = points[:, 2]
+    dz = z[:, None] - z[None, :]
+    dx = points[:, 0, None] - points[None, :, 0]
+    dy = points[:, 1, None] - points[None, :, 1]
     h = np.sqrt(dx * dx + dy * dy)
     usable = (dz > 0.0) & (h >= min_separation_m)
+    # arctan is increasing, so the steepest chord is the one of largest dz / h (h > 0 where
+    # usable); the angle is taken of that chord only.
     with np.errstate(divide="ignore", invalid="ignore"):
-        slope = np.where(usable, np.arctan2(dz, h), -1.0)
-    partner = np.argmax(slope, axis=1).astype(np.intp)
-    best = slope[np.arange(n), partner]
-    found = best >= 0.0
+        ratio = np.where(usable, dz / h, -1.0)
+    partner = np.argmax(ratio, axis=1).astype(np.intp)
+    rows = np.arange(n)
+    found = ratio[rows, partner] >= 0.0
+    best = np.arctan2(dz[rows, partner], h[rows, partner])
     return np.where(found, best, 0.0), np.where(found, partner, -1).astype(np.intp)

@@ -22,24 +22,27 @@ scalar arithmetic and a few small array operations on the sensor readings.
 from __future__ import annotations
 
 import bisect
+import copy
 import math
 from collections import deque
+from collections.abc import Generator
 from dataclasses import dataclass
-from typing import NamedTuple
+from typing import NamedTuple, TypeVar
 
 import numpy as np
 
 from companion.planner.avoidance import (
     AvoidanceRequest,
     Detour,
+    detour_search,
     min_distance_within,
-    plan_detour,
 )
 from companion.planner.decision import chord_steepness, decide, steepness, thresholds
 from companion.planner.frames import wrap_pi
 from companion.planner.memory import ObstacleMemory
 from companion.planner.params import ArcMethod, PlannerParams
 from companion.planner.path import Path
+from companion.planner.retreat import RetreatPlan, backwards_track, retreat_search
 from companion.planner.rotations import r_g
 from companion.planner.route import Route
 from companion.planner.sensors import SURFACE_FOR_GROUP, Group, SensorTable, range_points_world
@@ -57,9 +60,15 @@ from companion.planner.types import (
     VehicleState,
 )
 
+_T = TypeVar("_T")
 _TRACK_SPACING_M = 0.5
 _TRACK_MAX_POINTS = 400
-_RETREAT_STEPS_M = (3.0, 6.0, 9.0, 12.0, 16.0, 20.0, 25.0, 30.0, 40.0)
+SEARCH_BUDGET_UNITS = 12
+"""Work units (candidate corrections tried, `avoidance.detour_search`) a cycle may spend on
+a re-plan; a search that needs more resumes next cycle where it stopped (at rest, with the
+memory's `generation` unchanged) or starts afresh (the reference point moved). Enough for
+every correction the project's scenarios accept while moving; blocked searches and the
+dead-end retreat spread over cycles, so that no cycle costs more than this many units."""
 _YAW_RATE_AT_REST_RAD_S = 0.8
 _YAW_ALIGNED_RAD = 0.1
 _STOPPED_MPS = 1e-3
@@ -124,6 +133,15 @@ class _LookAhead(NamedTuple):
     curve_s: FloatArray
     curve_v_sq: FloatArray
     clearance: FloatArray | None
+
+
+@dataclass(frozen=True, slots=True)
+class _Resolved:
+    """How a re-plan search ended: a correction from here, a retreat, or neither (None,
+    None: blocked)."""
+
+    detour: Detour | None = None
+    retreat: RetreatPlan | None = None
 
 
 class Planner:
@@ -202,7 +220,17 @@ class Planner:
         self._sight_key: tuple[float, float] | None = None
         self._failed_attempt: tuple[int, int, int, bool] | None = None
         self._failed_cycle = 0
+        self._search: tuple[tuple[object, ...], Generator[bool, None, _Resolved]] | None = None
         self._v_layout = params.v_d_mps
+
+    def __deepcopy__(self, memo: dict[int, object]) -> Planner:
+        """A copy of the planner; a re-plan search still going on (a generator, which cannot
+        be copied) starts afresh in the copy."""
+        twin = Planner.__new__(Planner)
+        memo[id(self)] = twin
+        for name, value in self.__dict__.items():
+            setattr(twin, name, None if name == "_search" else copy.deepcopy(value, memo))
+        return twin
 
     # --- public controls -------------------------------------------------------------------
     @property
@@ -485,6 +513,7 @@ class Planner:
         self._mode, self._side = mode, side
         self._stops = []
         self._after_retreat = None
+        self._search = None
 
     def _record_track(self, x: float, y: float) -> None:
         """Append X_d to the covered track every _TRACK_SPACING_M; going back over the
@@ -577,28 +606,80 @@ class Planner:
             and self._cycle - self._failed_cycle < _RETRY_BLOCKED_CYCLES
         ):
             return False
-        request = AvoidanceRequest(
-            start_xy=here.copy(),
-            start_dir=None if at_rest else self._path.segments[self._segment].tangent(self._t),
-            conflict_xy=conflict_xy,
-            obstacles_xy=nearby,
-            committed_side=self._side,
-            free_left_m=free_left,
-            free_right_m=free_right,
-            avoid_side=self._avoid_side,
-            obstacles_inflation=nearby_inflation,
+        # The search resumes where it stopped last cycle while nothing it depends on has
+        # changed (at rest, the reference point does not move); else it starts afresh.
+        key = (
+            self._memory.generation,
+            float(here[0]),
+            float(here[1]),
+            at_rest,
+            self._mode,
+            self._side,
+            self._avoid_side,
         )
-        detour = plan_detour(self.route, request, params)
-        if detour is not None:
-            self._accept(detour, events, stop_first=at_rest)
+        if self._search is None or self._search[0] != key:
+            request = AvoidanceRequest(
+                start_xy=here.copy(),
+                start_dir=None if at_rest else self._path.segments[self._segment].tangent(self._t),
+                conflict_xy=conflict_xy,
+                obstacles_xy=nearby,
+                committed_side=self._side,
+                free_left_m=free_left,
+                free_right_m=free_right,
+                avoid_side=self._avoid_side,
+                obstacles_inflation=nearby_inflation,
+            )
+            self._search = (key, self._resolve(request, at_rest))
+        resolved = self._advance_search(self._search[1], events)
+        if resolved is None:
+            return False  # the search goes on next cycle
+        self._search = None
+        if resolved.detour is not None:
+            self._accept(resolved.detour, events, stop_first=at_rest)
             return True
-        if not self._blocked:
-            events.append("blocked: no path keeps D_min, stopping")
-        self._blocked = True
-        if at_rest and self._retreat(request, events):
+        if resolved.retreat is not None:
+            self._start_retreat(resolved.retreat, events)
             return True
         self._failed_attempt, self._failed_cycle = attempt, self._cycle
         return False
+
+    def _resolve(
+        self, request: AvoidanceRequest, at_rest: bool
+    ) -> Generator[bool, None, _Resolved]:
+        """The re-plan search in work units (yields False per unit): a correction from here;
+        failing that (yields True once: blocked) and at rest, a retreat along the covered
+        track to where a correction on the other side exists."""
+        detour = yield from _units(detour_search(self.route, request, self.params))
+        if detour is not None:
+            return _Resolved(detour=detour)
+        yield True
+        if not at_rest:
+            return _Resolved()
+        track = backwards_track(self._xd_prev[:2], self._track)
+        plan = yield from _units(
+            retreat_search(self.route, request, self.params, track, _TRACK_SPACING_M, self._side)
+        )
+        return _Resolved(retreat=plan)
+
+    def _advance_search(
+        self, search: Generator[bool, None, _Resolved], events: list[str]
+    ) -> _Resolved | None:
+        """Run the search for at most SEARCH_BUDGET_UNITS units; its outcome, or None if it
+        is not done. Reaching the blocked mark stops the vehicle (and says so once)."""
+        units = 0
+        while units < SEARCH_BUDGET_UNITS:
+            try:
+                blocked_mark = next(search)
+            except StopIteration as done:
+                resolved: _Resolved = done.value
+                return resolved
+            if blocked_mark:
+                if not self._blocked:
+                    events.append("blocked: no path keeps D_min, stopping")
+                self._blocked = True
+            else:
+                units += 1
+        return None
 
     def _accept(self, detour: Detour, events: list[str], stop_first: bool) -> None:
         if detour.side is not self._side or self._mode is PathMode.ROUTE:
@@ -611,56 +692,19 @@ class Planner:
             self._stops = [0.0]
         self._detour_end_s = detour.path.length - (self.route.length - detour.rejoin_s)
 
-    def _retreat(self, request: AvoidanceRequest, events: list[str]) -> bool:
-        """At rest and blocked: back out along the covered track to the nearest point from
-        which a path on the other side exists; stop there, turn, and take it."""
-        # From here backwards along the covered track.
-        track = np.vstack([self._xd_prev[:2], np.array(self._track)[::-1]])
-        if len(track) < 3:
-            return False
-        seglen = np.hypot(*np.diff(track, axis=0).T)
-        along = np.concatenate([[0.0], np.cumsum(seglen)])
-        failed = self._side
-        for back_m in _RETREAT_STEPS_M:
-            if back_m > along[-1]:
-                break
-            j = int(np.searchsorted(along, back_m))
-            target = track[j]
-            trial = AvoidanceRequest(
-                start_xy=target,
-                start_dir=None,
-                conflict_xy=request.conflict_xy,
-                obstacles_xy=request.obstacles_xy,
-                committed_side=Side.NONE,
-                free_left_m=request.free_left_m,
-                free_right_m=request.free_right_m,
-                avoid_side=failed,
-                obstacles_inflation=request.obstacles_inflation,
-            )
-            detour = plan_detour(self.route, trial, self.params)
-            if detour is None:
-                continue
-            # Back along the covered track (known free), through points every ~2 m.
-            keep = track[: j + 1][:: max(1, int(2.0 / _TRACK_SPACING_M))]
-            if float(np.hypot(*(keep[-1] - target))) > 1e-6:
-                keep = np.vstack([keep, target])
-            if len(keep) < 2:
-                continue
-            back = Route(keep)
-            self._set_path(
-                Path([*back.segments, *detour.path.segments]), PathMode.RETREAT, detour.side
-            )
-            self._stops = [0.0, back.length]
-            self._avoid_side = failed
-            self._detour_end_s = back.length
-            rejoin_on_path = (
-                back.length + detour.path.length - (self.route.length - detour.rejoin_s)
-            )
-            self._after_retreat = (detour.mode, detour.side, rejoin_on_path)
-            events.append(f"dead end: backing out {back_m:.0f} m, then {detour.side.value}")
-            self._blocked = False
-            return True
-        return False
+    def _start_retreat(self, plan: RetreatPlan, events: list[str]) -> None:
+        """Back out along the covered track, stop, turn, and take the correction found."""
+        detour = plan.detour
+        self._set_path(plan.path, PathMode.RETREAT, detour.side)
+        self._stops = [0.0, plan.back_length_m]
+        self._avoid_side = plan.failed_side
+        self._detour_end_s = plan.back_length_m
+        rejoin_on_path = (
+            plan.back_length_m + detour.path.length - (self.route.length - detour.rejoin_s)
+        )
+        self._after_retreat = (detour.mode, detour.side, rejoin_on_path)
+        events.append(f"dead end: backing out {plan.back_m:.0f} m, then {detour.side.value}")
+        self._blocked = False
 
     def _free_range(self, ranges: FloatArray, valid: BoolArray) -> tuple[float, float]:
         """Sum of free range seen by the left and by the right obstacle sensors, metres."""
@@ -727,3 +771,14 @@ class Planner:
                 free = float(look.s[too_close[0]] - s_here)
                 v = min(v, math.sqrt(2.0 * a * max(free - 0.05, 0.0)))
         return max(v, 0.0)
+
+
+def _units(search: Generator[None, None, _T]) -> Generator[bool, None, _T]:
+    """A search's work units as `Planner._resolve` counts them (False: one unit)."""
+    while True:
+        try:
+            next(search)
+        except StopIteration as done:
+            result: _T = done.value
+            return result
+        yield False
