@@ -568,11 +568,13 @@ class Planner:
         radius = params.lookahead_m + 2.0 * params.d_min_m + 10.0
         if len(self._memory) == 0:
             self._blocked = False
+            self._search = None
             return False
         look = self._look_ahead()
         if len(look.s) == 0 or look.clearance is None:  # (None only with no memory)
             if len(self._memory.near(here, radius)) == 0:
                 self._blocked = False
+            self._search = None
             return False
         # The samples are within lookahead of here, so every remembered point closer to one
         # than the trigger distance is within `radius` of here: no need to filter first.
@@ -580,6 +582,7 @@ class Planner:
         conflict_samples = look.clearance < trigger
         if not conflict_samples.any():
             self._blocked = False
+            self._search = None
             return False
         if self._mode is PathMode.RETREAT and not self._blocked:
             return False  # backing out along the covered track: it is known to be free
@@ -764,7 +767,9 @@ class Planner:
             # obstacle) a path that leads out of it is free: only places closer than here
             # count. Never "stop where we are" on a path that moves away.
             limit = params.d_min_m + 0.5 * params.clearance_margin_m
-            if not self._blocked:
+            # A search still going on (`SEARCH_BUDGET_UNITS`) stops the vehicle as a blocked
+            # one does, until it has its answer.
+            if not self._blocked and self._search is None:
                 limit = min(limit, float(dist[0]) - 0.05)
             too_close = np.flatnonzero(dist < limit)
             if len(too_close):
