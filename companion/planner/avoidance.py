@@ -160,7 +160,7 @@ def free_intervals(
 
 def _route_frame(poly: Polyline, s: float) -> tuple[FloatArray, FloatArray, FloatArray]:
     """Point, unit tangent and left normal of the dense route polyline at arc length s."""
-    j = int(np.clip(np.searchsorted(poly.s, s), 0, len(poly.s) - 1))
+    j = min(max(int(np.searchsorted(poly.s, s)), 0), len(poly.s) - 1)
     if j > 0 and (s - poly.s[j - 1]) < (poly.s[j] - s):
         j -= 1
     t = poly.tangents[j]
@@ -440,7 +440,7 @@ def _build(
     if not segments:
         return None
     if rejoin_s not in tails:
-        tails[rejoin_s] = route.split_at(rejoin_s)[1]
+        tails[rejoin_s] = route.tail_from(rejoin_s)
     tail = tails[rejoin_s]
     # The route tail starts exactly at the rejoin point; snap the last segment's end to it.
     if tail:

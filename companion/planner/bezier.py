@@ -64,18 +64,39 @@ class CubicBezier:
 
     def __post_init__(self) -> None:
         c = np.array(self.control, dtype=np.float64)
-        if c.shape != (4, 2) or not np.all(np.isfinite(c)):
+        if c.shape != (4, 2):
+            raise ValueError(f"control points must be a finite (4, 2) array, got {c!r}")
+        # Scalar copies of the control points and of the hodograph's control points
+        # (x0, y0, x1, y1, ...) for the per-cycle scalar fast paths (pure-float maths; the
+        # same operations, in the same order, as the array forms 3 diff(c) and the powers
+        # below, so the same numbers). Plain floats: a segment is built per candidate
+        # correction, and numpy's overhead on a (4, 2) array is most of that cost.
+        flat = c.ravel().tolist()
+        if not all(math.isfinite(v) for v in flat):
             raise ValueError(f"control points must be a finite (4, 2) array, got {c!r}")
         c.setflags(write=False)
         object.__setattr__(self, "control", c)
-        # Scalar copies of the control points and of the hodograph's control points
-        # (x0, y0, x1, y1, ...) for the per-cycle scalar fast paths (pure-float maths).
-        object.__setattr__(self, "_c", tuple(map(float, c.ravel())))
-        d = 3.0 * np.diff(c, axis=0)
-        object.__setattr__(self, "_d", tuple(map(float, d.ravel())))
+        x0, y0, x1, y1, x2, y2, x3, y3 = flat
+        d = (
+            3.0 * (x1 - x0),
+            3.0 * (y1 - y0),
+            3.0 * (x2 - x1),
+            3.0 * (y2 - y1),
+            3.0 * (x3 - x2),
+            3.0 * (y3 - y2),
+        )
+        object.__setattr__(self, "_c", tuple(flat))
+        object.__setattr__(self, "_d", d)
         # The hodograph in powers of t: B'(t) = h0 + h1 t + h2 t^2, for vectorised speeds.
-        h = ((d[0]), 2.0 * (d[1] - d[0]), d[0] - 2.0 * d[1] + d[2])
-        object.__setattr__(self, "_h", tuple((float(x), float(y)) for x, y in h))
+        object.__setattr__(
+            self,
+            "_h",
+            (
+                (d[0], d[1]),
+                (2.0 * (d[2] - d[0]), 2.0 * (d[3] - d[1])),
+                (d[0] - 2.0 * d[2] + d[4], d[1] - 2.0 * d[3] + d[5]),
+            ),
+        )
         object.__setattr__(self, "_uniform", {})
         object.__setattr__(self, "_table", None)
 
@@ -390,7 +411,8 @@ def segment_through(
     """
     p0 = np.asarray(start, dtype=np.float64)
     p3 = np.asarray(end, dtype=np.float64)
-    chord = float(np.linalg.norm(p3 - p0))
+    dx, dy = float(p3[0]) - float(p0[0]), float(p3[1]) - float(p0[1])
+    chord = math.sqrt(dx * dx + dy * dy)
     h0 = chord / 3.0 if handle_m is None else handle_m
     h1 = h0 if end_handle_m is None else end_handle_m
     return CubicBezier(

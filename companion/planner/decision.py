@@ -55,17 +55,16 @@ def chord_steepness(points: FloatArray, min_separation_m: float) -> tuple[FloatA
     n = len(points)
     if n < 2:
         return np.zeros(n), np.full(n, -1, dtype=np.intp)
-    z = points[:, 2]
-    dz = z[:, None] - z[None, :]
-    dx = points[:, 0, None] - points[None, :, 0]
-    dy = points[:, 1, None] - points[None, :, 1]
+    x, y, z = points.T
+    dz = np.subtract.outer(z, z)
+    dx = np.subtract.outer(x, x)
+    dy = np.subtract.outer(y, y)
     h = np.sqrt(dx * dx + dy * dy)
     usable = (dz > 0.0) & (h >= min_separation_m)
     # arctan is increasing, so the steepest chord is the one of largest dz / h (h > 0 where
-    # usable); the angle is taken of that chord only.
-    with np.errstate(divide="ignore", invalid="ignore"):
-        ratio = np.where(usable, dz / h, -1.0)
-    partner = np.argmax(ratio, axis=1).astype(np.intp)
+    # usable, -1 elsewhere); the angle is taken of that chord only.
+    ratio = np.divide(dz, h, out=np.full((n, n), -1.0), where=usable)
+    partner = ratio.argmax(axis=1)
     rows = np.arange(n)
     found = ratio[rows, partner] >= 0.0
     best = np.arctan2(dz[rows, partner], h[rows, partner])

@@ -18,6 +18,9 @@ from numpy.typing import NDArray
 from companion.planner.bezier import CubicBezier
 from companion.planner.types import FloatArray
 
+_TAIL_CACHE_SIZE = 256
+"""Route tails `Path.tail_from` keeps (the oldest is dropped first)."""
+
 
 @dataclass(frozen=True, slots=True)
 class Polyline:
@@ -47,6 +50,7 @@ class Path:
             starts.append(starts[-1] + seg.length)
         self._starts = starts
         self._polyline: Polyline | None = None
+        self._tails: dict[float, list[CubicBezier]] = {}
 
     @property
     def length(self) -> float:
@@ -112,6 +116,17 @@ class Path:
         if spacing_m == 0.25:
             self._polyline = poly
         return poly
+
+    def tail_from(self, s: float) -> list[CubicBezier]:
+        """The segments after arc length s (`split_at`'s second part), kept per s: the
+        re-plan search asks for the same few rejoin points cycle after cycle, and the cut
+        segment's arc-length table is then built once. The list is shared: do not modify."""
+        tail = self._tails.get(s)
+        if tail is None:
+            if len(self._tails) >= _TAIL_CACHE_SIZE:
+                self._tails.pop(next(iter(self._tails)))
+            tail = self._tails[s] = self.split_at(s)[1]
+        return tail
 
     def split_at(self, s: float) -> tuple[list[CubicBezier], list[CubicBezier]]:
         """Segments before and after arc length s (de Casteljau at the cut)."""
