@@ -473,19 +473,22 @@ class Planner:
         n = len(self.sensors)
         phi_row = np.zeros(n)
         phi_row[rows] = phi_pair[: len(rows)]
+        obs = self.sensors.obstacle_index
+        chord_obs = phi_row[obs]
+        valid_obs = valid[obs]
+        eq6_steeper = phi_star >= chord_obs  # where eq. (6)'s own chord is the steeper one
+        phi_row[obs] = np.where(valid_obs, np.maximum(phi_star, chord_obs), 0.0)
+        phi_star[:] = phi_row[obs]
+        steep = valid & (phi_row > self._row_threshold)
+        if not steep.any():  # the usual cycle: nothing to remember
+            return np.empty((0, 3)), np.empty(0)
         other = np.full((n, 3), np.nan)  # the chord's other end
         found = partner[: len(rows)] >= 0
         other[rows[found]] = cloud[partner[: len(rows)][found]]
-        obs = self.sensors.obstacle_index
         ground_z = np.full(n, np.inf)
         ground_z[obs] = ground[:, 2]
-        eq6 = valid[obs] & (phi_star >= phi_row[obs])  # eq. (6) is the steeper chord
+        eq6 = valid_obs & eq6_steeper
         other[obs[eq6]] = ground[eq6]
-        phi_row[obs] = np.where(valid[obs], np.maximum(phi_star, phi_row[obs]), 0.0)
-        phi_star[:] = phi_row[obs]
-        steep = valid & (phi_row > self._row_threshold)
-        if not steep.any():
-            return np.empty((0, 3)), np.empty(0)
         xyz, low = points[steep], other[steep]
         h = np.hypot(xyz[:, 0] - low[:, 0], xyz[:, 1] - low[:, 1])
         local = h <= _LOCAL_CHORD_M
