@@ -31,6 +31,7 @@ from typing import NamedTuple, TypeVar
 
 import numpy as np
 
+from companion.planner import speed
 from companion.planner.avoidance import (
     AvoidanceRequest,
     Detour,
@@ -71,7 +72,6 @@ every correction the project's scenarios accept while moving; blocked searches a
 dead-end retreat spread over cycles, so that no cycle costs more than this many units."""
 _YAW_RATE_AT_REST_RAD_S = 0.8
 _YAW_ALIGNED_RAD = 0.1
-_STOPPED_MPS = 1e-3
 _GROUND_HOLD_RANGE = 4.0
 _RETRY_BLOCKED_CYCLES = 20
 _MIN_CHORD_M = 0.5
@@ -321,18 +321,10 @@ class Planner:
         v_target = self._speed_target()
         heading = self._path_heading()
         yaw_error = wrap_pi(heading - self._yaw)
-        if abs(yaw_error) > _YAW_ALIGNED_RAD and self._v <= _STOPPED_MPS:
+        if abs(yaw_error) > _YAW_ALIGNED_RAD and self._v <= speed.STOPPED_MPS:
             v_target = 0.0  # turn on the spot before leaving a stop in a new direction
-        ramp = params.accel_max_mps2 * dt_s
-        self._v = min(max(v_target, self._v - 2.0 * ramp), self._v + ramp)
-        if self._v < _STOPPED_MPS and v_target <= 0.0:
-            self._v = 0.0
-        step_m = self._v * dt_s
-        for stop in self._stops:
-            if stop > self._s + 1e-9:
-                # Land exactly on a stop (a cusp or the end of a retreat), never across it.
-                step_m = min(step_m, (stop - self._s) / max(math.cos(phi_d), 1e-6))
-                break
+        self._v = speed.ramp(self._v, v_target, params.accel_max_mps2, dt_s)
+        step_m = speed.step_to_next_stop(self._v * dt_s, self._s, self._stops, phi_d)
         if params.arc_method is ArcMethod.EXACT:
             self._s, self._z = advance_exact(self._path, self._s, self._z, step_m, phi_d)
             self._segment, self._t = self._path.locate(self._s)
@@ -346,7 +338,7 @@ class Planner:
         x_d = np.array([x, y, self._z])
 
         heading = self._path_heading()
-        if self._v > _STOPPED_MPS:
+        if self._v > speed.STOPPED_MPS:
             self._yaw = heading
         else:
             turn = _YAW_RATE_AT_REST_RAD_S * dt_s
@@ -373,7 +365,7 @@ class Planner:
                 self._avoid_side = Side.NONE
         finished = (
             self._path.length - self._s <= params.goal_tolerance_m
-            and self._v <= _STOPPED_MPS
+            and self._v <= speed.STOPPED_MPS
             and self._path_ends_at_goal()
         )
         x_d.setflags(write=False)
@@ -595,7 +587,7 @@ class Planner:
         d_to_bad = np.sqrt(((nearby[:, None, :] - bad[None, :, :]) ** 2).sum(axis=2)).min(axis=1)
         conflict_xy = nearby[d_to_bad - nearby_inflation < trigger]
         free_left, free_right = self._free_range(ranges, valid)
-        at_rest = self._v <= _STOPPED_MPS
+        at_rest = self._v <= speed.STOPPED_MPS
         # A search that failed is not repeated while nothing it depends on has changed: no
         # new or dropped memory cell, the reference point within a cell of where it was, the
         # same state of motion (a blocked cycle is the costly one; bounded, it is retried
@@ -742,42 +734,34 @@ class Planner:
             )
 
     def _speed_target(self) -> float:
-        """Reference speed allowed here: v_d, lowered ahead of tight curves (lateral
-        acceleration), before points closer than D_min, before stops and the path's end."""
+        """Reference speed allowed here (`speed`): v_d (or the layout's limit), lowered
+        before the path's end and the next stop, ahead of tight curves (lateral
+        acceleration) and before places closer than the re-plan distance."""
         params = self.params
         a = params.accel_max_mps2
-        v = self._v_layout
         s_here = self._s
-        remaining = self._path.length - s_here
-        v = min(v, math.sqrt(2.0 * a * max(remaining, 0.0)))
-        for stop in self._stops:
-            if stop > s_here + 1e-9:
-                v = min(v, math.sqrt(2.0 * a * (stop - s_here)))
-                break
+        v = min(self._v_layout, speed.braking_speed(self._path.length - s_here, a))
+        stop = speed.next_stop(self._stops, s_here)
+        if stop is not None:
+            v = min(v, speed.braking_speed(stop - s_here, a))
         look = self._look_ahead()
         if len(look.s) == 0:
             return v
-        if len(look.curve_s):
-            # The speed from which the curve limit at each sample is reached at accel_max.
-            reach_sq = look.curve_v_sq + 2.0 * a * (look.curve_s - s_here)
-            v = min(v, math.sqrt(float(reach_sq.min())))
+        v = min(v, speed.curve_limit(look.curve_s, look.curve_v_sq, s_here, a))
         if look.clearance is not None:
-            dist = look.clearance
-            # Stop before the first place closer than the trigger distance. An accepted
-            # correction may start inside that band (new points appeared) while leading out
-            # of it; then only places closer than here count, and never closer than D_min.
-            # Inside that band (new points appeared, or a retreat starts next to the
-            # obstacle) a path that leads out of it is free: only places closer than here
-            # count. Never "stop where we are" on a path that moves away.
-            limit = params.d_min_m + 0.5 * params.clearance_margin_m
             # A search still going on (`SEARCH_BUDGET_UNITS`) stops the vehicle as a blocked
             # one does, until it has its answer.
-            if not self._blocked and self._search is None:
-                limit = min(limit, float(dist[0]) - 0.05)
-            too_close = np.flatnonzero(dist < limit)
-            if len(too_close):
-                free = float(look.s[too_close[0]] - s_here)
-                v = min(v, math.sqrt(2.0 * a * max(free - 0.05, 0.0)))
+            v = min(
+                v,
+                speed.clearance_limit(
+                    look.s,
+                    look.clearance,
+                    s_here,
+                    a,
+                    params.d_min_m + 0.5 * params.clearance_margin_m,
+                    stop_at_band=self._blocked or self._search is not None,
+                ),
+            )
         return max(v, 0.0)
 
 

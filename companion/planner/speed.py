@@ -1,0 +1,91 @@
+"""The reference speed schedule: how fast X_d may move along the path this cycle.
+
+The speed is v_d lowered by every limit ahead (each the speed from which the vehicle can
+still stop, or slow to a curve's speed, braking at accel_max), then ramped from last
+cycle's speed. Pure functions of plain numbers and the look-ahead's arrays; metres, seconds,
+m/s. `Planner.step` composes them in this order: `reference_speed`, `ramp`,
+`step_to_next_stop`.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+
+import numpy as np
+
+from companion.planner.types import FloatArray
+
+STOPPED_MPS = 1e-3
+"""Below this speed X_d counts as at rest."""
+_STOP_SHORT_M = 0.05
+"""How far short of a place closer than the re-plan distance X_d stops, metres."""
+
+
+def braking_speed(distance_m: float, accel_mps2: float) -> float:
+    """The speed from which braking at accel_mps2 stops within distance_m (0 if <= 0)."""
+    return math.sqrt(2.0 * accel_mps2 * max(distance_m, 0.0))
+
+
+def next_stop(stops: Sequence[float], s_m: float) -> float | None:
+    """The first stop (arc length on the path: a cusp, the end of a retreat) ahead of s_m."""
+    for stop in stops:
+        if stop > s_m + 1e-9:
+            return stop
+    return None
+
+
+def curve_limit(
+    curve_s: FloatArray, curve_v_sq: FloatArray, s_m: float, accel_mps2: float
+) -> float:
+    """The speed from which every curve sample ahead (arc length curve_s, squared curve speed
+    curve_v_sq = lat_accel_max / |curvature|) is reached braking at accel_mps2; inf if none."""
+    if len(curve_s) == 0:
+        return math.inf
+    reach_sq = curve_v_sq + 2.0 * accel_mps2 * (curve_s - s_m)
+    return math.sqrt(float(reach_sq.min()))
+
+
+def clearance_limit(
+    look_s: FloatArray,
+    clearance_m: FloatArray,
+    s_m: float,
+    accel_mps2: float,
+    replan_distance_m: float,
+    stop_at_band: bool,
+) -> float:
+    """The speed from which X_d stops _STOP_SHORT_M before the first look-ahead sample
+    (arc lengths look_s, clearances clearance_m) closer than the re-plan distance; inf if none.
+
+    stop_at_band: the planner is blocked or still searching, so it stops before the band
+    even when already inside it. Otherwise a path that leads out of the band (an accepted
+    correction that starts inside it, a retreat that starts next to the obstacle) is free:
+    only places closer than here count, and never "stop where we are" on a path that moves
+    away."""
+    limit = replan_distance_m
+    if not stop_at_band:
+        limit = min(limit, float(clearance_m[0]) - _STOP_SHORT_M)
+    too_close = np.flatnonzero(clearance_m < limit)
+    if len(too_close) == 0:
+        return math.inf
+    free = float(look_s[too_close[0]] - s_m)
+    return braking_speed(free - _STOP_SHORT_M, accel_mps2)
+
+
+def ramp(v_mps: float, v_target_mps: float, accel_mps2: float, dt_s: float) -> float:
+    """Next cycle's reference speed: towards v_target, up at accel_max and down at twice
+    that per cycle of dt_s; snapped to 0 when stopping below STOPPED_MPS."""
+    step = accel_mps2 * dt_s
+    v = min(max(v_target_mps, v_mps - 2.0 * step), v_mps + step)
+    if v < STOPPED_MPS and v_target_mps <= 0.0:
+        return 0.0
+    return v
+
+
+def step_to_next_stop(step_m: float, s_m: float, stops: Sequence[float], phi_d_rad: float) -> float:
+    """The 3-D step of eq. (5), shortened to land exactly on the next stop, never across it
+    (the horizontal arc is step cos(phi_d))."""
+    stop = next_stop(stops, s_m)
+    if stop is None:
+        return step_m
+    return min(step_m, (stop - s_m) / max(math.cos(phi_d_rad), 1e-6))
