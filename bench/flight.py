@@ -59,7 +59,10 @@ class Flight:
     vehicle_ns: list[int] = field(default_factory=list)
     clearance_ns: list[int] = field(default_factory=list)
     replan: list[bool] = field(default_factory=list)
-    """Cycles that searched for a correction (`plan_detour`): accepted or blocked."""
+    """Cycles that searched for a correction (`avoidance.detour_search`): accepted, blocked,
+    or a search that goes on next cycle."""
+    search_units: list[int] = field(default_factory=list)
+    """Work units the search spent each cycle (`Diagnostics.search_units`)."""
     phi_d: list[float] = field(default_factory=list)
     speed_ref: list[float] = field(default_factory=list)
     states: list[VehicleState] = field(default_factory=list)
@@ -114,7 +117,13 @@ def fly(
         flight.step_ns.append(t3 - t2)
         flight.vehicle_ns.append(t4 - t3)
         flight.clearance_ns.append(t5 - t4)
-        flight.replan.append(diag.replanned or diag.decision is Decision.BLOCKED)
+        flight.replan.append(
+            diag.replanned
+            or diag.decision is Decision.BLOCKED
+            or diag.search_units > 0
+            or diag.searching
+        )
+        flight.search_units.append(diag.search_units)
         flight.phi_d.append(diag.phi_d_rad)
         flight.speed_ref.append(diag.speed_ref_mps)
         if diag.finished:

@@ -4,9 +4,16 @@ Steady state: every cycle of the paper scenario (7 obstacle + 4 surface sensors)
 not search for a correction, pooled over `runs` flights; and the same cycles replayed from
 their recorded inputs, the least of 5 replays per cycle (the machine's interruptions
 removed: steadier on a busy machine, and a floor for the pooled figures).
-Re-plan: the cycles that searched (a correction accepted, or none found and the planner
-blocked), from every scenario, and the paper's re-plan cycles replayed `replays` times each
-from a deep copy of the planner.
+Re-plan: the cycles that searched (a correction accepted, none found and the planner
+blocked, or a search that used its budget and goes on next cycle), from every scenario, and
+the paper's re-plan cycles replayed `replays` times each from a deep copy of the planner.
+The work units a cycle spends searching (candidate corrections tried) are counted too: a
+bound that does not depend on the machine (`planner.SEARCH_BUDGET_UNITS`).
+
+Ratios: the machine's load moves every duration, so each is also given against the floor
+measured in the same run: the paper's equations alone on the same recorded inputs (eqs
+(1)-(2), (6) and (7) for every reading, numpy; the least of 5 replays per cycle, median
+over the cycles).
 """
 
 from __future__ import annotations
@@ -18,6 +25,41 @@ import numpy as np
 
 from bench.flight import Flight, fly, load, replay_min, scenario_names, split
 from bench.report import Section, percentiles_us
+from companion.planner import SEARCH_BUDGET_UNITS
+from companion.planner.decision import decide, steepness, thresholds
+from companion.planner.rotations import r_g
+from companion.planner.sensors import SURFACE_FOR_GROUP, Group, range_points_world
+from sim.scenario import Scenario
+
+
+def equations_floor_us(scenario: Scenario, flight: Flight, replays: int = 5) -> float:
+    """Median over the flight's cycles of the least of `replays` timings of the paper's
+    equations alone on that cycle's recorded inputs: eqs (1)-(2) for every reading, eq. (6)
+    for every obstacle reading against its group's surface point, eq. (7)'s decision.
+    Microseconds."""
+    clock = time.perf_counter_ns
+    sensors = scenario.sensor_table()
+    params = scenario.params()
+    obs = sensors.obstacle_index
+    surface = sensors.surface_index
+    ground_rows = np.array(
+        [
+            surface.get(SURFACE_FOR_GROUP[g], surface[Group.SURFACE_FORWARD])
+            for g in sensors.obstacle_groups
+        ],
+        dtype=np.intp,
+    )
+    limit = thresholds(sensors.obstacle_groups, params)
+    best = np.full(flight.cycles, np.iinfo(np.int64).max, dtype=np.int64)
+    for _ in range(replays):
+        for k, (state, ranges) in enumerate(zip(flight.states, flight.ranges, strict=True)):
+            t0 = clock()
+            rot = r_g(state.roll_rad, state.pitch_rad, state.yaw_rad)
+            valid = sensors.valid(ranges)
+            points = range_points_world(state.position_enu, rot, sensors.boresights_flu, ranges)
+            decide(steepness(points[obs], points[ground_rows], valid[obs]), limit)
+            best[k] = min(best[k], clock() - t0)
+    return float(np.median(best)) / 1e3
 
 
 def run(runs: int = 3, replays: int = 100) -> tuple[Section, Flight]:
@@ -42,6 +84,16 @@ def run(runs: int = 3, replays: int = 100) -> tuple[Section, Flight]:
     )
     sec.add("planner.steady.p99_us", "step, steady, p99", st["p99"], "us", ("<=", 150))
     sec.add("planner.steady.max_us", "step, steady, max", st["max"], "us")
+    floor_us = equations_floor_us(scenario, flight)
+    sec.details["paper_equations_floor_us"] = floor_us
+    sec.add("planner.floor_us", "floor: the paper's equations alone, median", floor_us, "us")
+    sec.add(
+        "planner.steady.median_ratio",
+        "step, steady, median / floor",
+        st["median"] / floor_us,
+        "x",
+    )
+    sec.add("planner.steady.p99_ratio", "step, steady, p99 / floor", st["p99"] / floor_us, "x")
     best = replay_min(scenario, world, flight, replays=5)
     steady_best = percentiles_us(best[~np.asarray(flight.replan, dtype=bool)])
     sec.details["paper_steady_min_of_5_replays_us"] = steady_best
@@ -56,6 +108,12 @@ def run(runs: int = 3, replays: int = 100) -> tuple[Section, Flight]:
         "step, steady, p99 (least of 5 replays per cycle)",
         steady_best["p99"],
         "us",
+    )
+    sec.add(
+        "planner.steady_replayed.median_ratio",
+        "step, steady, median (least of 5 replays) / floor",
+        steady_best["median"] / floor_us,
+        "x",
     )
 
     # Replays of the paper's re-plan cycles: many samples of the same real work.
@@ -86,13 +144,29 @@ def run(runs: int = 3, replays: int = 100) -> tuple[Section, Flight]:
     # Every scenario's searching cycles, as flown (one sample each).
     per_scenario: dict[str, dict[str, float]] = {}
     pooled: list[np.ndarray] = []
+    units: dict[str, dict[str, int]] = {}
     for name in scenario_names():
         f = flight if name == "paper" else fly(*load(name), name)
         _, r = split(f)
         pooled.append(r)
         per_scenario[name] = percentiles_us(r)
+        spent = np.asarray(f.search_units)
+        units[name] = {
+            "search_cycles": int(np.count_nonzero(f.replan)),
+            "units": int(spent.sum()),
+            "max_units_per_cycle": int(spent.max()) if len(spent) else 0,
+        }
     all_rp = percentiles_us(np.concatenate(pooled))
     sec.details["replan_all_scenarios_us"] = per_scenario
+    sec.details["search_units_per_scenario"] = units
+    sec.details["search_budget_units"] = SEARCH_BUDGET_UNITS
+    sec.add(
+        "planner.replan.max_units",
+        f"search work units in one cycle, max (all scenarios; budget {SEARCH_BUDGET_UNITS})",
+        max(u["max_units_per_cycle"] for u in units.values()),
+        "units",
+        ("<=", SEARCH_BUDGET_UNITS),
+    )
     sec.add(
         "planner.replan.all_p99_us",
         f"step, re-plan or blocked (all scenarios, n={all_rp['n']}), p99",
@@ -101,4 +175,16 @@ def run(runs: int = 3, replays: int = 100) -> tuple[Section, Flight]:
         ("<=", 1000),
     )
     sec.add("planner.replan.all_max_us", "step, re-plan or blocked (all), max", all_rp["max"], "us")
+    sec.add(
+        "planner.replan.all_p99_ratio",
+        "step, re-plan or blocked (all), p99 / floor",
+        all_rp["p99"] / floor_us,
+        "x",
+    )
+    sec.add(
+        "planner.replan.all_max_ratio",
+        "step, re-plan or blocked (all), max / floor",
+        all_rp["max"] / floor_us,
+        "x",
+    )
     return sec, flight

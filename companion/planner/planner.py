@@ -220,6 +220,7 @@ class Planner:
         self._sight_key: tuple[float, float] | None = None
         self._failed_attempt: tuple[int, int, int, bool] | None = None
         self._failed_cycle = 0
+        self._search_units = 0
         self._search: tuple[tuple[object, ...], Generator[bool, None, _Resolved]] | None = None
         self._v_layout = params.v_d_mps
 
@@ -276,6 +277,7 @@ class Planner:
             raise ValueError(f"expected {len(self.sensors)} ranges, got {len(ranges)}")
         params = self.params
         self._cycle += 1
+        self._search_units = 0
         events: list[str] = []
 
         # Eqs (1)-(2): world points of every reading.
@@ -385,6 +387,8 @@ class Planner:
             replanned=replanned,
             finished=finished,
             events=tuple(events),
+            search_units=self._search_units,
+            searching=self._search is not None,
         )
         return StepResult(setpoint, diagnostics)
 
@@ -664,8 +668,7 @@ class Planner:
     ) -> _Resolved | None:
         """Run the search for at most SEARCH_BUDGET_UNITS units; its outcome, or None if it
         is not done. Reaching the blocked mark stops the vehicle (and says so once)."""
-        units = 0
-        while units < SEARCH_BUDGET_UNITS:
+        while self._search_units < SEARCH_BUDGET_UNITS:
             try:
                 blocked_mark = next(search)
             except StopIteration as done:
@@ -676,7 +679,7 @@ class Planner:
                     events.append("blocked: no path keeps D_min, stopping")
                 self._blocked = True
             else:
-                units += 1
+                self._search_units += 1
         return None
 
     def _accept(self, detour: Detour, events: list[str], stop_first: bool) -> None:

@@ -110,6 +110,11 @@ class Diagnostics:
     finished: bool
     events: tuple[str, ...] = field(default_factory=tuple)
     """Messages a pilot should know about, raised this cycle (side chosen, blocked, ...)."""
+    search_units: int = 0
+    """Work units the re-plan search spent this cycle (candidate corrections tried; at most
+    the planner's per-cycle budget); 0 on a cycle that did not search."""
+    searching: bool = False
+    """A re-plan search used its budget and goes on next cycle (the vehicle stops meanwhile)."""
 
 
 @dataclass(frozen=True, slots=True)
