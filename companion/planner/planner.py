@@ -325,6 +325,8 @@ class Planner:
         yaw_error = wrap_pi(heading - self._yaw)
         if abs(yaw_error) > _YAW_ALIGNED_RAD and self._v <= speed.STOPPED_MPS:
             v_target = 0.0  # turn on the spot before leaving a stop in a new direction
+        if self._search is not None and self._v <= speed.STOPPED_MPS:
+            v_target = 0.0  # at rest, a search still going on finishes from here
         self._v = speed.ramp(self._v, v_target, params.accel_max_mps2, dt_s)
         step_m = speed.step_to_next_stop(self._v * dt_s, self._s, self._stops, phi_d)
         if params.arc_method is ArcMethod.EXACT:
