@@ -7,10 +7,12 @@ Every cycle:
 4. If the path ahead comes within D_min + margin/2 of a remembered point, the horizontal
    path is reshaped (`avoidance.plan_detour`); if no reshaped path keeps D_min the planner
    reports BLOCKED and stops short of the obstacle, then backs out along the distance it has
-   covered and tries the other way.
-5. The reference speed is limited by curvature (lateral acceleration), by the distance to
-   the first point that would come closer than D_min, and by the distance to the end of the
-   path, and ramps at accel_max; X_d advances along the path at that 3-D speed, eq. (5).
+   covered and tries the other way (`retreat`). The search spends at most
+   SEARCH_BUDGET_UNITS work units a cycle and resumes next cycle (docs/avoidance.md).
+5. The reference speed (`speed`) is limited by curvature (lateral acceleration), by the
+   distance to the first point that would come closer than D_min, and by the distance to the
+   end of the path, and ramps at accel_max; X_d advances along the path at that 3-D speed,
+   eq. (5).
 Deterministic: same inputs, same outputs. No clocks or I/O; dt_s comes from the caller.
 
 Cost per cycle (a Raspberry Pi runs this at 20-50 Hz): the flown path's dense samples are
