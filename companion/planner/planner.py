@@ -637,9 +637,17 @@ class Planner:
             )
             self._search = (key, self._resolve(request, at_rest))
         resolved = self._advance_search(self._search[1], events)
-        if resolved is None:
-            return False  # the search goes on next cycle
+        if resolved is None and at_rest:
+            return False  # the search goes on next cycle, from this same rest point
         self._search = None
+        if resolved is None:
+            # Moving, X_d changes every cycle and the search would start afresh: one that
+            # does not fit in a cycle counts as failed (blocked: stop, then search at rest).
+            if not self._blocked:
+                events.append("blocked: no path keeps D_min, stopping")
+            self._blocked = True
+            self._failed_attempt, self._failed_cycle = attempt, self._cycle
+            return False
         if resolved.detour is not None:
             self._accept(resolved.detour, events, stop_first=at_rest)
             return True
