@@ -68,10 +68,11 @@ _TRACK_SPACING_M = 0.5
 _TRACK_MAX_POINTS = 400
 SEARCH_BUDGET_UNITS = 12
 """Work units (candidate corrections tried, `avoidance.detour_search`) a cycle may spend on
-a re-plan; a search that needs more resumes next cycle where it stopped (at rest, with the
-memory's `generation` unchanged) or starts afresh (the reference point moved). Enough for
-every correction the project's scenarios accept while moving; blocked searches and the
-dead-end retreat spread over cycles, so that no cycle costs more than this many units."""
+a re-plan. At rest, a search that needs more resumes next cycle where it stopped (while the
+memory's `generation` and everything else it depends on are unchanged); moving, it counts
+as failed (blocked: the vehicle stops and searches again at rest). Enough for every
+correction the project's scenarios accept while moving; what it spreads over cycles are
+the searches at rest and the dead-end retreat (up to 9 full searches)."""
 _YAW_RATE_AT_REST_RAD_S = 0.8
 _YAW_ALIGNED_RAD = 0.1
 _GROUND_HOLD_RANGE = 4.0
