@@ -85,7 +85,7 @@ def test_a_pocket_fails_after_trying_every_candidate() -> None:
     )
     result, units = run_to_end(detour_search(ROUTE, request(pocket, direction=None), PARAMS))
     assert result is None
-    assert units > SEARCH_BUDGET_UNITS  # more work than one cycle may spend
+    assert units > 5  # every candidate tried, one unit each
 
 
 def at_rest_before_a_wall() -> tuple[Planner, np.ndarray, VehicleState]:
