@@ -52,7 +52,7 @@ async def flying() -> AsyncIterator[tuple[Service, FakeAutopilot, int]]:
     ap = FakeAutopilot(UdpOutLink(host, port))
     await ap.start()
     try:
-        await until(lambda: svc.configured)
+        await until(lambda: svc.status().configured)
         ap.set_mode(GUIDED)
         await ap.wait_for(lambda: len(ap.setpoints()) >= 10)
         yield svc, ap, port
@@ -137,7 +137,7 @@ async def test_flood_10x_keeps_the_loop_rate() -> None:
         # two; what must hold is the loop's rate and that nothing goes uncounted.
         assert f["stale_dropped"] > 0  # same-instant repeats: dropped and counted
         assert f["memory_growth_bytes"] < 1_000_000
-        assert svc.ownership.engaged
+        assert svc.status().owner == "engaged"
 
 
 async def test_flood_beyond_capacity_is_dropped_and_counted() -> None:
@@ -151,4 +151,4 @@ async def test_flood_beyond_capacity_is_dropped_and_counted() -> None:
         assert f["received"] + f["kernel_dropped"] >= 0.99 * f["sent"]
         if f["received"] < 0.95 * f["sent"]:  # the service could not keep up...
             assert f["kernel_dropped"] > 0  # ...and the drops are counted
-        assert svc.ownership.engaged
+        assert svc.status().owner == "engaged"
