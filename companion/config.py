@@ -563,7 +563,7 @@ def _check_takeover(cfg: ServiceConfig) -> None:
 def _check_files(cfg: ServiceConfig) -> None:
     """Files the service will need at start: the signing key must be readable and valid."""
     if cfg.signing.enabled and cfg.signing.key_file is not None:
-        from companion.service.signing import SigningKeyError, load_key
+        from companion.signing_key import SigningKeyError, load_key
 
         try:
             load_key(cfg.signing.key_file)

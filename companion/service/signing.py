@@ -16,7 +16,6 @@ from __future__ import annotations
 import json
 import logging
 import os
-import stat
 import time
 from pathlib import Path
 
@@ -28,36 +27,6 @@ TICKS_PER_SECOND = 100_000
 """The signing timestamp's unit is 10 microseconds."""
 SAVE_INTERVAL_S = 10.0
 RESUME_MARGIN_TICKS = int(2 * SAVE_INTERVAL_S * TICKS_PER_SECOND)
-
-
-class SigningKeyError(ValueError):
-    """The key file is missing, unreadable or not a 32-byte key."""
-
-
-def load_key(path: Path) -> bytes:
-    """The 32-byte secret from `path` (64 hex characters, or 32 raw bytes)."""
-    try:
-        raw = path.read_bytes()
-    except OSError as exc:
-        raise SigningKeyError(f"cannot read signing key file {path}: {exc.strerror}") from None
-    try:
-        mode = path.stat().st_mode
-        if mode & (stat.S_IRWXG | stat.S_IRWXO):
-            log.warning("signing key file %s is readable by others; chmod 600 it", path)
-    except OSError:
-        pass
-    text = b"".join(raw.split())
-    if len(text) == 64:
-        try:
-            return bytes.fromhex(text.decode("ascii"))
-        except (UnicodeDecodeError, ValueError):
-            pass
-    if len(raw) == 32:
-        return raw
-    raise SigningKeyError(
-        f"signing key file {path}: expected 64 hexadecimal characters or 32 raw bytes, "
-        f"found {len(raw)} bytes"
-    )
 
 
 def timestamp_now(unix_time_s: float | None = None) -> int:
