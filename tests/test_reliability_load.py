@@ -45,6 +45,8 @@ def assert_loop_not_starved(f: dict[str, float]) -> None:
     assert f["cycle_hz"] >= 0.5 * LOOP_HZ
     if f["cycle_hz"] < 0.95 * LOOP_HZ:
         assert f["overruns"] > 0
+
+
 ROOT = Path(__file__).resolve().parents[1]
 
 

@@ -15,10 +15,8 @@ from collections import Counter
 from collections.abc import Callable
 from dataclasses import dataclass
 
-from pymavlink import mavutil
-
 from companion.config import ServiceConfig
-from companion.service.codec import MavCodec, MAVLinkMessage
+from companion.service.codec import MavCodec, MAVLinkMessage, mavlink2
 from companion.service.connection import Connection
 from companion.service.identity import companion_system_id
 from companion.service.modes import AutopilotKind, autopilot_kind
@@ -28,9 +26,7 @@ from companion.service.statustext import Severity
 
 log = logging.getLogger("companion.service")
 
-_NOT_AUTOPILOTS = frozenset(
-    {mavutil.mavlink.MAV_TYPE_GCS, mavutil.mavlink.MAV_TYPE_ONBOARD_CONTROLLER}
-)
+_NOT_AUTOPILOTS = frozenset({mavlink2.MAV_TYPE_GCS, mavlink2.MAV_TYPE_ONBOARD_CONTROLLER})
 """MAV_TYPEs of a heartbeat that is not a vehicle's, whatever its MAV_AUTOPILOT says."""
 
 

@@ -30,13 +30,11 @@ import logging
 from collections.abc import Coroutine
 from typing import Any
 
-from pymavlink import mavutil
-
 from companion.config import ServiceConfig
 from companion.planner.types import VehicleState
 from companion.service.autopilot import AutopilotFinder, AutopilotInfo
 from companion.service.clock import Clock, MonotonicClock, SimClock
-from companion.service.codec import MavCodec, MAVLinkMessage
+from companion.service.codec import MavCodec, MAVLinkMessage, mavlink2
 from companion.service.commands import CommandClient
 from companion.service.connection import Connection
 from companion.service.counters import ProblemReporter, ServiceCounters, collect
@@ -367,7 +365,7 @@ class Service:
             return
         assert sg.key_file is not None
         key = load_key(sg.key_file)
-        allowed = [getattr(mavutil.mavlink, f"MAVLINK_MSG_ID_{n}") for n in sg.allow_unsigned]
+        allowed = [getattr(mavlink2, f"MAVLINK_MSG_ID_{n}") for n in sg.allow_unsigned]
         self.codec.enable_signing(
             key,
             link_id=sg.link_id,
@@ -448,7 +446,7 @@ class Service:
             tc1 = max(1, ts1)
         else:
             tc1 = max(1, int(clock.now() * 1e9))
-        self.conn.send(mavutil.mavlink.MAVLink_timesync_message(tc1, ts1))
+        self.conn.send(mavlink2.MAVLink_timesync_message(tc1, ts1))
 
     # === tasks =============================================================================
 

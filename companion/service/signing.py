@@ -19,6 +19,8 @@ import os
 import time
 from pathlib import Path
 
+from companion.signing_key import SigningKeyError, load_key
+
 log = logging.getLogger(__name__)
 
 SIGNING_EPOCH_UNIX_S = 1420070400
@@ -72,3 +74,6 @@ class SigningState:
             os.replace(tmp, self.path)
         except OSError as exc:
             log.warning("cannot save signing state to %s: %s", self.path, exc)
+
+
+__all__ = ["SigningKeyError", "SigningState", "load_key", "timestamp_now"]

@@ -18,12 +18,10 @@ from collections import Counter
 from collections.abc import Awaitable, Callable, Coroutine
 from typing import Any
 
-from pymavlink import mavutil
-
 from companion.config import ServiceConfig, latlon_points_xy, route_problem
 from companion.service.autopilot import AutopilotFinder, AutopilotInfo
 from companion.service.clock import Clock
-from companion.service.codec import MAVLinkMessage
+from companion.service.codec import MAVLinkMessage, mavlink2
 from companion.service.commands import CommandClient, CommandDeniedError, CommandError
 from companion.service.connection import Connection, waiting_hint
 from companion.service.failsafe import Limits, Verdict, assess
@@ -37,10 +35,10 @@ from companion.service.telemetry import Telemetry
 log = logging.getLogger("companion.service")
 
 STREAM_IDS = {
-    "ATTITUDE": mavutil.mavlink.MAVLINK_MSG_ID_ATTITUDE,
-    "GLOBAL_POSITION_INT": mavutil.mavlink.MAVLINK_MSG_ID_GLOBAL_POSITION_INT,
-    "DISTANCE_SENSOR": mavutil.mavlink.MAVLINK_MSG_ID_DISTANCE_SENSOR,
-    "HOME_POSITION": mavutil.mavlink.MAVLINK_MSG_ID_HOME_POSITION,
+    "ATTITUDE": mavlink2.MAVLINK_MSG_ID_ATTITUDE,
+    "GLOBAL_POSITION_INT": mavlink2.MAVLINK_MSG_ID_GLOBAL_POSITION_INT,
+    "DISTANCE_SENSOR": mavlink2.MAVLINK_MSG_ID_DISTANCE_SENSOR,
+    "HOME_POSITION": mavlink2.MAVLINK_MSG_ID_HOME_POSITION,
 }
 STREAMS_LOST_S = 2.0
 """Heartbeats without position this long: request the message rates again."""
@@ -343,9 +341,7 @@ class Supervisor:
             if a.verdict is Verdict.RUN:
                 return
             if self.clock.now() >= deadline:
-                raise CommandError(
-                    mavutil.mavlink.MAV_CMD_COMPONENT_ARM_DISARM, f"not arming: {a.reason}"
-                )
+                raise CommandError(mavlink2.MAV_CMD_COMPONENT_ARM_DISARM, f"not arming: {a.reason}")
             if a.reason != said:
                 said = a.reason
                 self._say(f"auto start: waiting, {a.reason}", Severity.INFO)
@@ -408,7 +404,7 @@ class Supervisor:
                 )
                 if not await self.wait_for(self._guided, 5.0):
                     raise CommandError(
-                        mavutil.mavlink.MAV_CMD_DO_SET_MODE, "mode did not change to GUIDED"
+                        mavlink2.MAV_CMD_DO_SET_MODE, "mode did not change to GUIDED"
                     )
                 self._allow_modes("GUIDED")
             await self._wait_ready_to_arm(deadline)
@@ -440,7 +436,7 @@ class Supervisor:
             )
             if not ok:
                 raise CommandError(
-                    mavutil.mavlink.MAV_CMD_NAV_TAKEOFF, "take-off did not reach its altitude"
+                    mavlink2.MAV_CMD_NAV_TAKEOFF, "take-off did not reach its altitude"
                 )
             if kind is AutopilotKind.PX4:
                 self.priming = True
@@ -449,7 +445,7 @@ class Supervisor:
                 await self.commands.set_mode(set_mode_params(kind, "guided"))
                 if not await self.wait_for(self._guided, 5.0):
                     raise CommandError(
-                        mavutil.mavlink.MAV_CMD_DO_SET_MODE, "mode did not change to OFFBOARD"
+                        mavlink2.MAV_CMD_DO_SET_MODE, "mode did not change to OFFBOARD"
                     )
         except CommandError as exc:
             self.counters["auto_start_failed"] += 1
