@@ -49,6 +49,7 @@ from companion.service.host import (
 )
 from companion.service.identity import Health, heartbeat_message
 from companion.service.link import Link
+from companion.service.modes import Ownership
 from companion.service.notify import SystemdNotifier
 from companion.service.signing import SigningKeyError, SigningState, load_key, timestamp_now
 from companion.service.status import PlannerState, SensorFreshness, ServiceStatus
@@ -212,6 +213,11 @@ class Service:
     def planner(self) -> PlannerLike | None:
         """The planner flying the route now, if any."""
         return self.host.planner
+
+    @property
+    def ownership(self) -> Ownership:
+        """Who commands the vehicle (read-only use; `status().owner` is the snapshot)."""
+        return self.cycle.ownership
 
     async def run(self) -> int:
         """Run until `stop()`; 0 on a clean stop, 1 after a fatal error, 2 for a bad signing
