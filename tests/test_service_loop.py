@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import dataclasses
 import math
 from collections.abc import AsyncIterator
 from typing import Any
@@ -363,3 +364,28 @@ async def test_set_desired_height_reaches_planner() -> None:
         assert box.made[0].h_d == 3.5
         with pytest.raises(ValueError):
             svc.set_desired_height(math.nan)
+
+
+async def test_status_is_a_frozen_snapshot_of_what_the_service_does() -> None:
+    async with running() as (svc, ap, _box):
+        before = svc.status()
+        assert before.health is Health.BOOT and before.planner.value == "none"
+        assert before.freshness.heartbeat_age_s is None and before.last_setpoint is None
+        with pytest.raises(dataclasses.FrozenInstanceError):
+            before.health = Health.ACTIVE  # type: ignore[misc]
+        await until(lambda: svc.status().configured)
+        ap.set_mode(GUIDED)
+        await ap.wait_for(lambda: len(ap.setpoints()) >= 5)
+        s = svc.status()
+        assert s.owner.value == "engaged" and s.planner.value == "flying"
+        assert s.mode == "GUIDED" and s.target_system == 1
+        assert not s.holding and s.hold_reason == "" and s.last_setpoint_kind == "planner"
+        assert s.last_setpoint is not None and s.h_d_m == svc.cfg.planner.h_d_m
+        assert s.freshness.position_age_s is not None and s.freshness.position_age_s < 1.0
+        assert len(s.freshness.range_ages_s) == 3 and s.freshness.stale_sensor_ids == ()
+        assert s.counters["service.setpoints_sent"] >= 5
+        assert before.health is Health.BOOT  # the old snapshot did not change
+        ap.sensors_enabled = {0, 1}  # sensor 2 goes quiet: hold, and the snapshot says why
+        await until(lambda: svc.status().holding, 3.0)
+        s = svc.status()
+        assert "sensor" in s.hold_reason and s.freshness.stale_sensor_ids == (2,)
