@@ -18,9 +18,6 @@ import asyncio
 import time
 from typing import Protocol
 
-SIM_POLL_S = 0.001
-"""Wall seconds between looks at a clock set from outside, while sleeping on it."""
-
 
 class Clock(Protocol):
     """Seconds on a clock that never goes backwards; its origin is arbitrary."""
@@ -41,10 +38,16 @@ class MonotonicClock:
 
 
 class SimClock:
-    """Time set from outside (seconds, the simulator's lockstep ticks); never goes backwards."""
+    """Time set from outside (seconds, the simulator's lockstep ticks); never goes backwards.
+
+    `sleep` returns at the first `set` that reaches its end: in lockstep, on a tick, while
+    the simulator waits for the tick's answer (so what the sleeper does next lands in that
+    tick, whatever the machine's load).
+    """
 
     def __init__(self, start_s: float = 0.0) -> None:
         self._t = start_s
+        self._moved: asyncio.Event | None = None
 
     def now(self) -> float:
         return self._t
@@ -52,32 +55,8 @@ class SimClock:
     def set(self, t_s: float) -> None:
         if t_s > self._t:
             self._t = t_s
-
-    async def sleep(self, duration_s: float) -> None:
-        end = self._t + duration_s
-        while self._t < end:
-            await asyncio.sleep(SIM_POLL_S)
-
-
-class ManualClock(SimClock):
-    """A clock a test moves by hand: `advance(dt_s)` or `set(t_s)`; sleepers wake when their
-    end has been reached (after the test yields to the event loop)."""
-
-    def __init__(self, start_s: float = 0.0) -> None:
-        super().__init__(start_s)
-        self._moved = asyncio.Event() if _has_loop() else None
-
-    def set(self, t_s: float) -> None:
-        super().set(t_s)
-        if self._moved is not None:
-            self._moved.set()
-
-    def advance(self, dt_s: float) -> float:
-        """Move time forward by dt_s >= 0; returns the new time."""
-        if dt_s < 0:
-            raise ValueError(f"a clock cannot go back: dt_s = {dt_s}")
-        self.set(self._t + dt_s)
-        return self._t
+            if self._moved is not None:
+                self._moved.set()
 
     async def sleep(self, duration_s: float) -> None:
         if self._moved is None:
@@ -90,12 +69,16 @@ class ManualClock(SimClock):
             await self._moved.wait()
 
 
-def _has_loop() -> bool:
-    try:
-        asyncio.get_running_loop()
-    except RuntimeError:
-        return False
-    return True
+class ManualClock(SimClock):
+    """A clock a test moves by hand: `advance(dt_s)` or `set(t_s)`; sleepers wake when their
+    end has been reached (after the test yields to the event loop)."""
+
+    def advance(self, dt_s: float) -> float:
+        """Move time forward by dt_s >= 0; returns the new time."""
+        if dt_s < 0:
+            raise ValueError(f"a clock cannot go back: dt_s = {dt_s}")
+        self.set(self._t + dt_s)
+        return self._t
 
 
 __all__ = ["Clock", "ManualClock", "MonotonicClock", "SimClock"]
