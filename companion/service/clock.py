@@ -19,6 +19,12 @@ import time
 from typing import Protocol
 
 
+def unix_time_s() -> float:
+    """Seconds since 1970 (UTC) by the computer's calendar clock: only for what must name the
+    date, the MAVLink signing timestamp; everything that measures time takes a `Clock`."""
+    return time.time()
+
+
 class Clock(Protocol):
     """Seconds on a clock that never goes backwards; its origin is arbitrary."""
 
@@ -81,4 +87,4 @@ class ManualClock(SimClock):
         return self._t
 
 
-__all__ = ["Clock", "ManualClock", "MonotonicClock", "SimClock"]
+__all__ = ["Clock", "ManualClock", "MonotonicClock", "SimClock", "unix_time_s"]

@@ -16,9 +16,9 @@ from __future__ import annotations
 import json
 import logging
 import os
-import time
 from pathlib import Path
 
+from companion.service import clock
 from companion.signing_key import SigningKeyError, load_key
 
 log = logging.getLogger(__name__)
@@ -33,7 +33,7 @@ RESUME_MARGIN_TICKS = int(2 * SAVE_INTERVAL_S * TICKS_PER_SECOND)
 
 def timestamp_now(unix_time_s: float | None = None) -> int:
     """The signing timestamp of a wall-clock time (now by default)."""
-    t = time.time() if unix_time_s is None else unix_time_s
+    t = clock.unix_time_s() if unix_time_s is None else unix_time_s
     return max(0, int((t - SIGNING_EPOCH_UNIX_S) * TICKS_PER_SECOND))
 
 
