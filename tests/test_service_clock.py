@@ -59,3 +59,29 @@ def test_every_clock_meets_the_protocol() -> None:
     a = [c.now() for c in clocks]
     b = [c.now() for c in clocks]
     assert all(y >= x for x, y in zip(a, b, strict=True))
+
+
+def test_only_the_clock_module_reads_the_computers_time() -> None:
+    """The service's time comes from an injected Clock: no other module of companion.service
+    calls time.monotonic/time/perf_counter (or imports them by name)."""
+    import ast
+    from pathlib import Path
+
+    import companion.service
+
+    readers = {"monotonic", "monotonic_ns", "time", "time_ns", "perf_counter", "perf_counter_ns"}
+    offenders = []
+    for path in sorted(Path(companion.service.__file__).parent.glob("*.py")):
+        if path.name == "clock.py":
+            continue
+        for node in ast.walk(ast.parse(path.read_text())):
+            if (
+                isinstance(node, ast.Attribute)
+                and isinstance(node.value, ast.Name)
+                and node.value.id == "time"
+                and node.attr in readers
+            ):
+                offenders.append(f"{path.name}:{node.lineno} time.{node.attr}")
+            if isinstance(node, ast.ImportFrom) and node.module == "time":
+                offenders.append(f"{path.name}:{node.lineno} from time import ...")
+    assert offenders == []
