@@ -47,6 +47,7 @@ test: $(STAMP) lint typecheck pytest
 lint: $(STAMP)
 	$(BIN)/ruff check companion sim tests bench
 	$(BIN)/ruff format --check companion sim tests bench
+	$(BIN)/lint-imports
 
 typecheck: $(STAMP)
 	$(BIN)/mypy companion sim bench

@@ -218,12 +218,7 @@ async def _kill(svc: Service, task: asyncio.Task[int]) -> None:
     task.cancel()
     with contextlib.suppress(asyncio.CancelledError, Exception):
         await task
-    for t in svc._tasks:
-        t.cancel()
-    with contextlib.suppress(Exception):
-        await svc.conn.close()
-    if svc.flight_log is not None:
-        svc.flight_log.close()
+    await svc.abandon()
 
 
 async def fly_fault_async(
