@@ -1,4 +1,4 @@
-"""sim.plots: both figures are written as PNGs, from a synthetic trace (no closed loop)."""
+"""harness.plots: both figures are written as PNGs, from a synthetic trace (no closed loop)."""
 
 from __future__ import annotations
 
@@ -12,8 +12,8 @@ import numpy as np
 import pytest
 
 from companion.planner.route import Route
-from sim.closed_loop import TRACE_COLUMNS
-from sim.plots import write_figures
+from harness.closed_loop import TRACE_COLUMNS
+from harness.plots import write_figures
 from sim.world import World, WorldConfig
 
 needs_matplotlib = pytest.mark.skipif(
@@ -158,14 +158,14 @@ def test_without_matplotlib_a_clear_error(tmp_path: Path, monkeypatch: pytest.Mo
 
 
 def test_import_has_no_matplotlib_side_effect() -> None:
-    code = "import sys, sim.plots; assert 'matplotlib' not in sys.modules, 'imported'"
+    code = "import sys, harness.plots; assert 'matplotlib' not in sys.modules, 'imported'"
     subprocess.run(
         [sys.executable, "-c", code], check=True, timeout=60, cwd=Path(__file__).parents[1]
     )
 
 
 def test_nothing_detected_is_a_gap_not_a_distance() -> None:
-    from sim.plots import _detected
+    from harness.plots import _detected
 
     got = _detected([0.0, 3.5, math.nan, 0.0, 1.2])
     assert np.isnan(got[[0, 2, 3]]).all()
@@ -175,7 +175,7 @@ def test_nothing_detected_is_a_gap_not_a_distance() -> None:
 def test_route_terrain_is_taken_at_the_vehicles_progress() -> None:
     """The profile's original-route terrain is on the flown path's axis: a box on the route
     shows up where the vehicle passes it, however far off the route the vehicle is."""
-    from sim.plots import _route_terrain_at_progress
+    from harness.plots import _route_terrain_at_progress
 
     world = World.from_config(
         WorldConfig.model_validate(
@@ -198,7 +198,7 @@ def test_plan_labels_and_legend_hide_nothing() -> None:
     does not cover the goal or start marks."""
     from matplotlib.figure import Figure
 
-    from sim.plots import _place_plan_labels
+    from harness.plots import _place_plan_labels
 
     fig = Figure(figsize=(12, 4), layout="constrained")
     ax = fig.add_subplot()

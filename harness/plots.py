@@ -975,7 +975,7 @@ def write_figures(
 ) -> list[Path]:
     """Write out_dir/fig6.png and out_dir/fig7.png of one run; return their paths.
 
-    trace: columns of `sim.closed_loop.TRACE_COLUMNS` (one row per cycle); params: h_d_m,
+    trace: columns of `harness.closed_loop.TRACE_COLUMNS` (one row per cycle); params: h_d_m,
     d_min_m, phi_max_rad, v_d_mps; phi_star (cycles, obstacle sensors) and thresholds
     (obstacle sensors) in radians; memory_xy (n, 2) remembered obstacle points; events
     (t, text). RuntimeError if matplotlib (the `plots` extra) is not installed.
