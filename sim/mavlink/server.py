@@ -63,6 +63,7 @@ from sim.mavlink.models import RangeWorld, VehicleFactory, VehicleModel
 from sim.mavlink.personality import personality
 from sim.mavlink.rangefinder import Rangefinders
 from sim.mavlink.setpoints import Decision
+from sim.mavlink.streams import NAME_OF_ID, STREAMED_MESSAGES
 
 log = logging.getLogger(__name__)
 
@@ -423,7 +424,7 @@ class SimServer:
         mav = self.codec.mav
         out = self._send if send is None else send
         ap = self.autopilot
-        name = tm.NAME_OF_ID[msg_id]
+        name = NAME_OF_ID[msg_id]
         if name == "HEARTBEAT":
             out(tm.heartbeat_message(mav, self.personality, ap.mode, ap.armed, ap.failsafe))
         elif name == "SYS_STATUS":
@@ -565,7 +566,7 @@ class SimServer:
             hz = float(msg.req_message_rate) if msg.start_stop else 0.0
             for name in _DATA_STREAMS.get(int(msg.req_stream_id), ()):
                 interval_us = 1e6 / hz if hz > 0 else -1
-                self.scheduler.set_interval_us(tm.STREAMED_MESSAGES[name], interval_us, now)
+                self.scheduler.set_interval_us(STREAMED_MESSAGES[name], interval_us, now)
 
     def _ack(self, msg: Any, command: int, result: int) -> None:
         self._send(
@@ -648,7 +649,7 @@ class SimServer:
                 )
             )
             return ACCEPTED
-        if msg_id not in tm.NAME_OF_ID:
+        if msg_id not in NAME_OF_ID:
             return FAILED
         self._send_telemetry(msg_id, self.snapshot(), self._after_ack.append)
         return ACCEPTED
