@@ -11,11 +11,13 @@ from __future__ import annotations
 
 import math
 from abc import ABC, abstractmethod
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
+from numpy.typing import NDArray
 
 from companion.planner.types import FloatArray
 from sim.world.schema import (
@@ -218,41 +220,8 @@ class _Mesa(Feature):
         return np.where(r <= self.r_out, z, -np.inf)
 
     def ray_interval(self, o: FloatArray, d: FloatArray) -> tuple[FloatArray, FloatArray]:
-        # The column is convex: z < top, r <= r_out and (mesa) r <= R + (top - z) / tan.
-        px, py, oz = o[:, 0] - self.cx, o[:, 1] - self.cy, o[:, 2]
-        dx, dy, dz = d[:, 0], d[:, 1], d[:, 2]
-        top = self.ground + self.h
-        a = np.maximum(dx * dx + dy * dy, 1e-300)
-        b = px * dx + py * dy
-        pp = px * px + py * py
-        disc = b * b - a * (pp - self.r_out * self.r_out)
-        sq = np.sqrt(np.maximum(disc, 0.0))
-        t_in = np.maximum((-b - sq) / a, 0.0)
-        t_out = np.where(disc >= 0.0, (sq - b) / a, -np.inf)
-        t_top = (top - oz) / dz  # z < top: before t_top going up, after it going down
-        t_in = np.where(dz < 0.0, np.maximum(t_in, t_top), t_in)
-        t_out = np.where(dz > 0.0, np.minimum(t_out, t_top), t_out)
-        if self.tan is not None:
-            # Cone r = G(t) = g0 + g1 t (G > 0 wherever z < top): q(t) = G^2 - r^2 >= 0.
-            g0 = self.r + (top - oz) / self.tan
-            g1 = -dz / self.tan
-            qa = g1 * g1 - a
-            qb = g0 * g1 - b
-            qc = g0 * g0 - pp
-            qd = qb * qb - qa * qc
-            sq = np.sqrt(np.maximum(qd, 0.0))
-            qq = -(qb + np.copysign(sq, qb))
-            r1, r2 = qc / qq, qq / qa
-            lo, hi = np.fmin(r1, r2), np.fmax(r1, r2)
-            # qa < 0: inside between the roots (if any); qa >= 0: two half-lines, the
-            # lower nappe's is the first one going up and the second one going down.
-            c_in = np.where(qa < 0.0, lo, np.where(dz > 0.0, -np.inf, hi))
-            c_out = np.where(
-                qa < 0.0, np.where(qd >= 0.0, hi, -np.inf), np.where(dz > 0.0, lo, np.inf)
-            )
-            t_in = np.fmax(t_in, c_in)
-            t_out = np.fmin(t_out, c_out)
-        return t_in, t_out
+        t_in, t_out = mesa_intervals(o, d, *MesaParams.of([self]))
+        return t_in[:, 0], t_out[:, 0]
 
     def column_distance(self, px: float, py: float, pz: float) -> float:
         # A solid of revolution: work in the (r, z) half-plane. Its section is the region
@@ -308,22 +277,8 @@ class _Box(Feature):
         return np.where(inside, self.top, -np.inf)
 
     def ray_interval(self, o: FloatArray, d: FloatArray) -> tuple[FloatArray, FloatArray]:
-        # Slabs in the box's frame, and z < top.
-        ox, oy = o[:, 0] - self.cx, o[:, 1] - self.cy
-        dx, dy, dz = d[:, 0], d[:, 1], d[:, 2]
-        c, s = self.c, self.s
-        u0, du = ox * c + oy * s, dx * c + dy * s
-        v0, dv = oy * c - ox * s, dy * c - dx * s
-        du = np.where(du == 0.0, TINY, du)
-        dv = np.where(dv == 0.0, TINY, dv)
-        u1, u2 = (-self.hl - u0) / du, (self.hl - u0) / du
-        v1, v2 = (-self.hw - v0) / dv, (self.hw - v0) / dv
-        t_top = (self.top - o[:, 2]) / dz  # z < top: before t_top going up, after going down
-        t_in = np.maximum(np.minimum(u1, u2), np.minimum(v1, v2))
-        t_in = np.maximum(t_in, np.where(dz < 0.0, t_top, 0.0))
-        t_out = np.minimum(np.maximum(u1, u2), np.maximum(v1, v2))
-        t_out = np.minimum(t_out, np.where(dz > 0.0, t_top, np.inf))
-        return np.maximum(t_in, 0.0), t_out
+        t_in, t_out = box_intervals(o, d, *BoxParams.of([self]))
+        return t_in[:, 0], t_out[:, 0]
 
     def column_distance(self, px: float, py: float, pz: float) -> float:
         dx, dy = px - self.cx, py - self.cy
@@ -418,6 +373,179 @@ class _Heightmap(Feature):
         x0, x1, y0, y1 = self.rect
         poly = np.array([[x0, y0], [x1, y0], [x1, y1], [x0, y1]], dtype=np.float64)
         return FeatureInfo(self.name, self.type, self.obstacle, poly, None)
+
+
+# Ray intervals of the solid columns, for n rays against k features of a kind at once: the
+# parameters as (k,) arrays, the results (n, k). Every element is computed by the same
+# operations as for one feature alone, so a batch gives bit-identical ranges.
+
+
+class MesaParams(NamedTuple):
+    """Mesas and cylinders as (k,) arrays: centre, top radius, foot radius (m), absolute top
+    (m) and side slope tan (NaN for a vertical side: a cylinder)."""
+
+    cx: FloatArray
+    cy: FloatArray
+    r: FloatArray
+    r_out: FloatArray
+    top: FloatArray
+    tan: FloatArray
+
+    @classmethod
+    def of(cls, feats: Sequence[_Mesa]) -> MesaParams:
+        return cls(
+            np.array([f.cx for f in feats], dtype=np.float64),
+            np.array([f.cy for f in feats], dtype=np.float64),
+            np.array([f.r for f in feats], dtype=np.float64),
+            np.array([f.r_out for f in feats], dtype=np.float64),
+            np.array([f.ground + f.h for f in feats], dtype=np.float64),
+            np.array([math.nan if f.tan is None else f.tan for f in feats], dtype=np.float64),
+        )
+
+
+def mesa_intervals(
+    o: FloatArray,
+    d: FloatArray,
+    cx: FloatArray,
+    cy: FloatArray,
+    r: FloatArray,
+    r_out: FloatArray,
+    top: FloatArray,
+    tan: FloatArray,
+) -> tuple[FloatArray, FloatArray]:
+    """(t_in, t_out), (n, k) each, of rays o + t d (o, d: (n, 3), no zero components in d)
+    inside k mesa/cylinder columns; empty where t_in >= t_out. Call under
+    np.errstate(divide/invalid/over="ignore")."""
+    # The column is convex: z < top, r <= r_out and (mesa) r <= R + (top - z) / tan.
+    px, py, oz = o[:, 0:1] - cx, o[:, 1:2] - cy, o[:, 2:3]
+    dx, dy, dz = d[:, 0:1], d[:, 1:2], d[:, 2:3]
+    a = np.maximum(dx * dx + dy * dy, 1e-300)
+    b = px * dx + py * dy
+    pp = px * px + py * py
+    disc = b * b - a * (pp - r_out * r_out)
+    sq = np.sqrt(np.maximum(disc, 0.0))
+    t_in = np.maximum((-b - sq) / a, 0.0)
+    t_out = np.where(disc >= 0.0, (sq - b) / a, -np.inf)
+    t_top = (top - oz) / dz  # z < top: before t_top going up, after it going down
+    t_in = np.where(dz < 0.0, np.maximum(t_in, t_top), t_in)
+    t_out = np.where(dz > 0.0, np.minimum(t_out, t_top), t_out)
+    cone = ~np.isnan(tan)
+    if cone.any():
+        # Cone r = G(t) = g0 + g1 t (G > 0 wherever z < top): q(t) = G^2 - r^2 >= 0.
+        g0 = r + (top - oz) / tan
+        g1 = -dz / tan
+        qa = g1 * g1 - a
+        qb = g0 * g1 - b
+        qc = g0 * g0 - pp
+        qd = qb * qb - qa * qc
+        sq = np.sqrt(np.maximum(qd, 0.0))
+        qq = -(qb + np.copysign(sq, qb))
+        r1, r2 = qc / qq, qq / qa
+        lo, hi = np.fmin(r1, r2), np.fmax(r1, r2)
+        # qa < 0: inside between the roots (if any); qa >= 0: two half-lines, the
+        # lower nappe's is the first one going up and the second one going down.
+        c_in = np.where(qa < 0.0, lo, np.where(dz > 0.0, -np.inf, hi))
+        c_out = np.where(qa < 0.0, np.where(qd >= 0.0, hi, -np.inf), np.where(dz > 0.0, lo, np.inf))
+        # a cylinder's column (no cone) keeps its interval as it is
+        t_in = np.where(cone, np.fmax(t_in, c_in), t_in)
+        t_out = np.where(cone, np.fmin(t_out, c_out), t_out)
+    return t_in, t_out
+
+
+class BoxParams(NamedTuple):
+    """Boxes as (k,) arrays: centre (m), cos and sin of yaw, half length and half width
+    (m) and absolute top (m)."""
+
+    cx: FloatArray
+    cy: FloatArray
+    c: FloatArray
+    s: FloatArray
+    hl: FloatArray
+    hw: FloatArray
+    top: FloatArray
+
+    @classmethod
+    def of(cls, feats: Sequence[_Box]) -> BoxParams:
+        def col(name: str) -> FloatArray:
+            return np.array([getattr(f, name) for f in feats], dtype=np.float64)
+
+        return cls(*(col(n) for n in ("cx", "cy", "c", "s", "hl", "hw", "top")))
+
+
+def box_intervals(
+    o: FloatArray,
+    d: FloatArray,
+    cx: FloatArray,
+    cy: FloatArray,
+    c: FloatArray,
+    s: FloatArray,
+    hl: FloatArray,
+    hw: FloatArray,
+    top: FloatArray,
+) -> tuple[FloatArray, FloatArray]:
+    """(t_in, t_out), (n, k) each, of rays o + t d inside k boxes (slabs in each box's frame,
+    and z < top); empty where t_in >= t_out. Same conventions as `mesa_intervals`."""
+    ox, oy = o[:, 0:1] - cx, o[:, 1:2] - cy
+    dx, dy, dz = d[:, 0:1], d[:, 1:2], d[:, 2:3]
+    u0, du = ox * c + oy * s, dx * c + dy * s
+    v0, dv = oy * c - ox * s, dy * c - dx * s
+    du = np.where(du == 0.0, TINY, du)
+    dv = np.where(dv == 0.0, TINY, dv)
+    u1, u2 = (-hl - u0) / du, (hl - u0) / du
+    v1, v2 = (-hw - v0) / dv, (hw - v0) / dv
+    t_top = (top - o[:, 2:3]) / dz  # z < top: before t_top going up, after going down
+    t_in = np.maximum(np.minimum(u1, u2), np.minimum(v1, v2))
+    t_in = np.maximum(t_in, np.where(dz < 0.0, t_top, 0.0))
+    t_out = np.minimum(np.maximum(u1, u2), np.maximum(v1, v2))
+    t_out = np.minimum(t_out, np.where(dz > 0.0, t_top, np.inf))
+    return np.maximum(t_in, 0.0), t_out
+
+
+class SolidColumns:
+    """All solid features of a world, batched by kind, with their cull boxes as arrays."""
+
+    def __init__(self, solids: Sequence[Feature]) -> None:
+        self.mesas = [f for f in solids if isinstance(f, _Mesa)]
+        self.boxes = [f for f in solids if isinstance(f, _Box)]
+        if len(self.mesas) + len(self.boxes) != len(solids):
+            raise TypeError("a solid feature is neither a mesa/cylinder nor a box")
+        self._mesa = MesaParams.of(self.mesas)
+        self._box = BoxParams.of(self.boxes)
+        self._mesa_bb = self._bboxes(self.mesas)
+        self._box_bb = self._bboxes(self.boxes)
+
+    @staticmethod
+    def _bboxes(feats: Sequence[Feature]) -> FloatArray:
+        return np.array([f.cull_bbox for f in feats], dtype=np.float64).reshape(-1, 4)
+
+    @staticmethod
+    def _in_reach(bb: FloatArray, box: BBox) -> NDArray[np.bool_]:
+        return np.asarray(
+            (bb[:, 0] <= box[1])
+            & (box[0] <= bb[:, 1])
+            & (bb[:, 2] <= box[3])
+            & (box[2] <= bb[:, 3])
+        )
+
+    def first_entry(self, o: FloatArray, d: FloatArray, end: FloatArray, box: BBox) -> FloatArray:
+        """min(end, the first entry t of each ray into any solid column whose cull box meets
+        box), (n,). o, d: (n, 3), no zero components in d."""
+        out = end.copy()
+        with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+            for bb, params, fn in (
+                (self._mesa_bb, self._mesa, mesa_intervals),
+                (self._box_bb, self._box, box_intervals),
+            ):
+                if not bb.shape[0]:
+                    continue
+                keep = self._in_reach(bb, box)
+                if not keep.any():
+                    continue
+                sel = params if keep.all() else type(params)(*(p[keep] for p in params))
+                t_in, t_out = fn(o, d, *sel)
+                t_in = np.where(t_in < t_out, t_in, np.inf)
+                np.minimum(out, t_in.min(axis=1), out=out)
+        return out
 
 
 def make_feature(cfg: FeatureConfig, ground_z: float, base_dir: Path | None) -> Feature:

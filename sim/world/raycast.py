@@ -15,7 +15,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from companion.planner.types import FloatArray
-from sim.world.features import TINY, Feature, Plane, intersects
+from sim.world.features import TINY, Feature, Plane, SolidColumns, intersects
 from sim.world.heights import HeightField
 
 
@@ -83,6 +83,7 @@ class RayCaster:
         self.field = field
         self.ray_step_m = ray_step_m
         self.scan_step_m = scan_step_m
+        self._solids = SolidColumns(field.solid)
 
     def cast(
         self,
@@ -123,13 +124,8 @@ class RayCaster:
             float(lo3[1]) - r_max,
             float(hi3[1]) + r_max,
         )
-        end = rng.copy()  # the terrain matters up to the first solid's entry
-        with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
-            for f in self.field.solid:
-                if intersects(f.cull_bbox, box):
-                    t_in, t_out = f.ray_interval(o, d)
-                    t_in = np.where(t_in < t_out, t_in, np.inf)
-                    np.minimum(end, t_in, out=end)
+        # the terrain matters up to the first solid's entry: all rays against all solids
+        end = self._solids.first_entry(o, d, rng, box)
         solid_hit = end < rng if self.field.solid else np.zeros(n, bool)
         # Terrain along ray i: f(t) = g0 + g1 t - N(x(t), y(t)): g the height above the
         # affine part (ground and planes), N the sum of the other additive features.
