@@ -22,6 +22,7 @@ from typing import Any, TextIO
 import numpy as np
 
 from companion.config import parse_config
+from companion.planner.params import PlannerParams
 from companion.service import Service
 from companion.service.flightlog import FlightLog, read_flight_log
 from companion.service.link import UdpOutLink
@@ -327,19 +328,21 @@ def report(
         m = metrics_mod.compute(result.trace, route, world, h_d, v_d, result.finished)
         stream.write(metrics_mod.format_table(m) + "\n")
     if plots:
-        from harness.plots import write_figures
+        from harness.plots import PlotParams, write_figures
 
         written += write_figures(
             out_dir,
             shown_world,
             route,
             result.trace,
-            {
-                "h_d_m": h_d,
-                "d_min_m": float(params.get("d_min_m", 2.0)),
-                "phi_max_rad": float(params.get("phi_max_rad", 0.6)),
-                "v_d_mps": v_d,
-            },
+            PlotParams.from_planner(
+                PlannerParams(
+                    h_d_m=h_d,
+                    d_min_m=float(params.get("d_min_m", 2.0)),
+                    phi_max_rad=float(params.get("phi_max_rad", 0.6)),
+                    v_d_mps=v_d,
+                )
+            ),
             phi_star=result.phi_star,
             thresholds=result.thresholds,
             events=result.events,
