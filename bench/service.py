@@ -47,7 +47,7 @@ from companion.config import parse_config
 from companion.service import Service
 from companion.service.link import Receiver, UdpOutLink
 from companion.service.notify import SystemdNotifier
-from sim.fly import service_config
+from harness.fly import service_config
 from sim.mavlink import SimServer
 from sim.scenario import Scenario, load_scenario
 

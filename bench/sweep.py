@@ -13,7 +13,7 @@ from __future__ import annotations
 import time
 
 from bench.report import Section
-from sim.sweep import load_layout, run_local, tasks_for
+from harness.sweep import load_layout, run_local, tasks_for
 
 WORKERS = 2
 

@@ -31,7 +31,7 @@ from companion.service import Service
 from companion.service.flightlog import iter_records
 from companion.service.link import UdpOutLink
 from companion.service.notify import SystemdNotifier
-from sim.fly import service_config
+from harness.fly import service_config
 from sim.mavlink import SimServer
 from sim.scenario import Scenario
 from sim.world import World

@@ -19,7 +19,7 @@ from companion.config import parse_config
 from companion.service import Service
 from companion.service.link import UdpOutLink
 from companion.service.notify import SystemdNotifier
-from sim.fly import service_config
+from harness.fly import service_config
 from sim.mavlink import SimServer
 from sim.mavlink.missionfile import MissionFileError, load_mission
 from sim.scenario import load_scenario
