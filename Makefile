@@ -45,11 +45,12 @@ simulate: $(STAMP)
 test: $(STAMP) lint typecheck pytest
 
 lint: $(STAMP)
-	$(BIN)/ruff check companion sim tests bench
-	$(BIN)/ruff format --check companion sim tests bench
+	$(BIN)/ruff check companion sim harness tests bench
+	$(BIN)/ruff format --check companion sim harness tests bench
+	$(BIN)/lint-imports
 
 typecheck: $(STAMP)
-	$(BIN)/mypy companion sim bench
+	$(BIN)/mypy companion sim harness bench
 
 pytest: $(STAMP)
 	$(BIN)/pytest -q

@@ -8,10 +8,10 @@ import sys
 import time
 from pathlib import Path
 
-from bench import arc, planner, raycast, service, simulator
+from bench import arc, planner, raycast, service, simulator, sweep
 from bench.report import Section, machine, table, write_results
 
-NAMES = ("planner", "arc", "simulator", "raycast", "service")
+NAMES = ("planner", "arc", "simulator", "raycast", "service", "sweep")
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -51,6 +51,9 @@ def main(argv: list[str] | None = None) -> int:
     if "service" in only:
         log("service over UDP: real time (about a minute), lockstep for a simulated hour")
         sections.append(service.run(quick))
+    if "sweep" in only:
+        log(f"random-world sweep: a pool of {sweep.WORKERS} workers against 1")
+        sections.append(sweep.run(quick))
     meta["wall_s"] = round(time.perf_counter() - started, 1)
     meta["quick"] = quick
     print(table(sections))

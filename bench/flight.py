@@ -1,6 +1,6 @@
 """A closed-loop flight with a stopwatch on every part of the cycle.
 
-The same loop as `sim.closed_loop.run` (sense -> Planner.step -> vehicle model), minus the
+The same loop as `harness.closed_loop.run` (sense -> Planner.step -> vehicle model), minus the
 trace, plus timing of each part and the two clearance queries the closed loop makes every
 cycle. Same inputs, so the same flight: the cycle count is checked against the real run by
 the simulator benchmark.
@@ -18,7 +18,7 @@ import numpy as np
 from bench.report import REPO
 from companion.planner import Decision, Planner, VehicleState
 from companion.planner.types import FloatArray
-from sim.closed_loop import sense
+from harness.closed_loop import sense
 from sim.scenario import Scenario, load_scenario
 from sim.vehicle import make_vehicle
 from sim.world import World

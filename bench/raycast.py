@@ -1,7 +1,8 @@
 """Ray casting cost per ray: the paper's 11 sensors cast from the poses of a real paper
-flight, and the same sensors over a 1000 x 1000 height map (0.1 m cells, seeded smooth
-terrain) from seeded random poses 1-5 m above it. Each cast is the simulator's: all 11
-rays of a pose in one call."""
+flight, the pillars scenario's sensors from the poses of its in-process flight (five
+cylinders: all rays meet all solids in one set of array operations), and the paper's sensors
+over a 1000 x 1000 height map (0.1 m cells, seeded smooth terrain) from seeded random poses
+1-5 m above it. Each cast is the simulator's: all rays of a pose in one call."""
 
 from __future__ import annotations
 
@@ -16,6 +17,7 @@ from bench.flight import Flight, load
 from bench.report import Section
 from companion.planner import VehicleState
 from companion.planner.rotations import r_g
+from harness.closed_loop import run as closed_loop_run
 from sim.world import HeightmapConfig, World, WorldConfig
 
 HEIGHTMAP_CELLS = 1000
@@ -68,6 +70,29 @@ def run(flight: Flight, poses: int = 300, repeats: int = 3) -> Section:
     paper_ns = _time_casts(world, dirs, max_range, paper_poses, repeats)
     sec.add("ray.paper_world_us", "per ray, paper world (11-ray casts)", paper_ns / 1e3, "us")
 
+    p_scenario, p_world = load("pillars")
+    p_sensors = p_scenario.sensor_table()
+    trace = closed_loop_run(p_scenario, p_world).trace
+    step = max(1, len(trace["t"]) // poses)
+    pillar_poses = [
+        VehicleState(
+            np.array([trace["x"][i], trace["y"][i], trace["z"][i]]),
+            float(trace["roll"][i]),
+            float(trace["pitch"][i]),
+            float(trace["yaw"][i]),
+        )
+        for i in range(0, len(trace["t"]), step)
+    ]
+    pillars_ns = _time_casts(
+        p_world, p_sensors.boresights_flu, p_sensors.max_range_m, pillar_poses, repeats
+    )
+    sec.add(
+        "ray.pillars_world_us",
+        f"per ray, pillars world ({len(p_world.field.solid)} solids, {len(p_sensors)}-ray casts)",
+        pillars_ns / 1e3,
+        "us",
+    )
+
     with tempfile.TemporaryDirectory(prefix="bench-heightmap-") as tmp:
         path = Path(tmp) / "terrain.npy"
         z = heightmap()
@@ -98,6 +123,7 @@ def run(flight: Flight, poses: int = 300, repeats: int = 3) -> Section:
         "us",
     )
     sec.details["poses"] = len(paper_poses)
+    sec.details["pillars_poses"] = len(pillar_poses)
     sec.details["heightmap"] = {
         "cells": HEIGHTMAP_CELLS,
         "resolution_m": HEIGHTMAP_RES_M,

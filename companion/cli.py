@@ -328,7 +328,7 @@ def main(argv: Sequence[str] | None = None) -> int:
 
             return check_config(args.config, connection=args.connection)
         if args.command == "simulate":
-            from sim.runner import simulate
+            from harness.runner import simulate
             from sim.scenario import ScenarioError
 
             try:
@@ -340,7 +340,7 @@ def main(argv: Sequence[str] | None = None) -> int:
                 _print_metrics_json(args.out)
             return code
         if args.command == "sweep":
-            from sim.sweep import DEFAULT_LAYOUTS, VEHICLES, SweepError, SweepOptions, sweep
+            from harness.sweep import DEFAULT_LAYOUTS, VEHICLES, SweepError, SweepOptions, sweep
 
             def items(values: list[str] | None, default: tuple[str, ...]) -> tuple[str, ...]:
                 if not values:
@@ -365,11 +365,11 @@ def main(argv: Sequence[str] | None = None) -> int:
                 print(f"error: {exc}", file=sys.stderr)
                 return 2
         if args.command == "report":
-            from sim.fly import report
+            from harness.fly import report
 
             return report(args.log, args.out, args.scenario, plots=not args.no_plots)
         if args.command == "fly":
-            from sim.fly import fly
+            from harness.fly import fly
             from sim.scenario import ScenarioError
 
             try:

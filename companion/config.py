@@ -30,8 +30,8 @@ from typing import Annotated, Any, Literal, TextIO
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
+from companion.connection import LinkSpec, parse_connection
 from companion.planner.sensors import SensorTable
-from companion.service.link import LinkSpec, parse_connection
 from companion.tuning import PlannerConfig, SensorConfig, include_sensors_file, sensor_table
 
 Finite = Annotated[float, Field(allow_inf_nan=False)]
@@ -300,7 +300,7 @@ class SigningConfig(Section):
     @field_validator("allow_unsigned")
     @classmethod
     def _known_messages(cls, v: list[str]) -> list[str]:
-        from companion.service.codec import mavlink2
+        from pymavlink.dialects.v20 import ardupilotmega as mavlink2
 
         for name in v:
             if not hasattr(mavlink2, f"MAVLINK_MSG_ID_{name}"):
@@ -563,7 +563,7 @@ def _check_takeover(cfg: ServiceConfig) -> None:
 def _check_files(cfg: ServiceConfig) -> None:
     """Files the service will need at start: the signing key must be readable and valid."""
     if cfg.signing.enabled and cfg.signing.key_file is not None:
-        from companion.service.signing import SigningKeyError, load_key
+        from companion.signing_key import SigningKeyError, load_key
 
         try:
             load_key(cfg.signing.key_file)

@@ -63,6 +63,12 @@ def _parser() -> argparse.ArgumentParser:
     serve.add_argument(
         "--duration", type=float, metavar="S", help="stop after this much simulated time"
     )
+    serve.add_argument(
+        "--mission",
+        type=Path,
+        metavar="FILE",
+        help="start with this mission (QGroundControl .plan or QGC WPL 110 waypoint file)",
+    )
     serve.add_argument("--truth-csv", type=Path, help="write the true trajectory here on exit")
     serve.add_argument("-v", "--verbose", action="store_true", help="log more")
 
@@ -149,6 +155,16 @@ def _serve(args: argparse.Namespace) -> int:
     server = SimServer.from_scenario(
         scenario.model_copy(update={"mavlink": config.model_dump()}), args.scenario.parent
     )
+    if args.mission is not None:
+        from sim.mavlink.missionfile import MissionFileError, load_mission
+
+        try:
+            items = load_mission(args.mission, server.personality.has_home_mission_item)
+        except MissionFileError as exc:
+            print(f"error: {exc}", file=sys.stderr)
+            return 2
+        server.mission.load(items)
+        print(f"mission: {len(items)} items from {args.mission}", flush=True)
     duration = args.duration if args.duration is not None else math.inf
 
     async def main() -> None:

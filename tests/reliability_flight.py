@@ -31,7 +31,7 @@ from companion.service import Service
 from companion.service.flightlog import iter_records
 from companion.service.link import UdpOutLink
 from companion.service.notify import SystemdNotifier
-from sim.fly import service_config
+from harness.fly import service_config
 from sim.mavlink import SimServer
 from sim.scenario import Scenario
 from sim.world import World
@@ -218,12 +218,7 @@ async def _kill(svc: Service, task: asyncio.Task[int]) -> None:
     task.cancel()
     with contextlib.suppress(asyncio.CancelledError, Exception):
         await task
-    for t in svc._tasks:
-        t.cancel()
-    with contextlib.suppress(Exception):
-        await svc.conn.close()
-    if svc.flight_log is not None:
-        svc.flight_log.close()
+    await svc.abandon()
 
 
 async def fly_fault_async(

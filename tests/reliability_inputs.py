@@ -194,7 +194,7 @@ class ReceivePath:
         self.fed = Fed()
         # lock onto the autopilot with a good heartbeat
         self.feed(self.autopilot.encode(mavlink2.MAVLink_heartbeat_message(2, 3, 1, 5, 4, 3)))
-        assert self.svc.conn.target_system == AUTOPILOT[0], "did not lock onto the autopilot"
+        assert self.svc.status().target_system == AUTOPILOT[0], "did not lock onto the autopilot"
 
     def problem_total(self) -> int:
         c = self.svc.codec.counters

@@ -153,7 +153,7 @@ async def soak(hours: float, log_dir: Path, sample_every_s: float = 600.0) -> di
                         "objects": float(len(gc.get_objects())) if gc.collect() >= 0 else 0.0,
                         "rss_mb": _rss_bytes() / 1e6,
                         "cycle_ms": 1000 * cycle_cpu / per,
-                        "engaged": float(svc.ownership.engaged),
+                        "engaged": float(svc.status().owner == "engaged"),
                         "x_m": float(pos[0]),
                     }
                 )

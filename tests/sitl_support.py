@@ -397,6 +397,14 @@ def claims_job(spec: SitlSpec) -> dict[str, Any]:
         seen["sensors"] = _sensor_table(_collect(conn, ["DISTANCE_SENSOR"], 4.0), 4.0)
         feed[6] = (1200, 1300)  # the left sector loses its object
         feed.pop(39)  # the forward-down rangefinder goes silent
+        # Wait (bounded) until SITL reports the change, however loaded the machine, then
+        # let its 500 ms rangefinder timeout pass: the window below sees the settled state.
+        deadline = time.monotonic() + 20.0
+        while time.monotonic() < deadline:
+            m = conn.recv_match(type="DISTANCE_SENSOR", blocking=True, timeout=0.2)
+            sector_16 = m is not None and m.get_srcComponent() == 1 and int(m.id) == 16
+            if sector_16 and int(m.current_distance) == 1200:
+                break
         _collect(conn, None, 1.5)  # drain what was queued meanwhile
         seen["sensors_after"] = _sensor_table(_collect(conn, ["DISTANCE_SENSOR"], 2.0), 2.0)
 

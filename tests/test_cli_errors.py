@@ -97,13 +97,13 @@ def no_work(monkeypatch: pytest.MonkeyPatch) -> None:
 
     import companion.config
     import companion.service
-    import sim.fly
-    import sim.runner
+    import harness.fly
+    import harness.runner
 
     for module, name in [
-        (sim.runner, "simulate"),
-        (sim.fly, "fly"),
-        (sim.fly, "report"),
+        (harness.runner, "simulate"),
+        (harness.fly, "fly"),
+        (harness.fly, "report"),
         (companion.service, "main"),
         (companion.config, "check_config"),
     ]:

@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from sim.fly import fly_async
+from harness.fly import fly_async
 from sim.scenario import load_scenario
 
 pytestmark = [pytest.mark.sim, pytest.mark.slow, pytest.mark.timeout(180)]
@@ -37,7 +37,7 @@ def test_paper_through_the_service(autopilot: str, tmp_path: Path) -> None:
 
 
 def test_report_turns_the_flight_log_into_the_same_plots(tmp_path: Path) -> None:
-    from sim.fly import report
+    from harness.fly import report
 
     scenario = load_scenario(SCENARIOS / "smooth-hill.yaml")
     flown = asyncio.run(fly_async(scenario, SCENARIOS, tmp_path / "fly", "ardupilot"))

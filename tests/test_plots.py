@@ -1,4 +1,4 @@
-"""sim.plots: both figures are written as PNGs, from a synthetic trace (no closed loop)."""
+"""harness.plots: both figures are written as PNGs, from a synthetic trace (no closed loop)."""
 
 from __future__ import annotations
 
@@ -7,13 +7,15 @@ import math
 import subprocess
 import sys
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
 
+from companion.planner.params import PlannerParams
 from companion.planner.route import Route
-from sim.closed_loop import TRACE_COLUMNS
-from sim.plots import write_figures
+from harness.closed_loop import TRACE_COLUMNS
+from harness.plots import PlotParams, write_figures
 from sim.world import World, WorldConfig
 
 needs_matplotlib = pytest.mark.skipif(
@@ -21,7 +23,9 @@ needs_matplotlib = pytest.mark.skipif(
 )
 
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
-PARAMS = {"h_d_m": 2.0, "d_min_m": 2.0, "phi_max_rad": 0.6, "v_d_mps": 1.0}
+PARAMS = PlotParams.from_planner(
+    PlannerParams(h_d_m=2.0, d_min_m=2.0, phi_max_rad=0.6, v_d_mps=1.0)
+)
 N = 50
 
 
@@ -54,7 +58,7 @@ def straight_trace(world: World, a: np.ndarray, b: np.ndarray) -> dict[str, np.n
     u = np.linspace(0.0, 1.0, N)
     x = a[0] + u * (b[0] - a[0])
     y = a[1] + u * (b[1] - a[1])
-    z = np.asarray(world.height(x, y)) + PARAMS["h_d_m"]
+    z = np.asarray(world.height(x, y)) + PARAMS.h_d_m
     t = 0.1 * np.arange(1, N + 1)
     zeros = np.zeros(N)
     decision = np.array(["vertical"] * N, dtype=object)
@@ -80,7 +84,7 @@ def straight_trace(world: World, a: np.ndarray, b: np.ndarray) -> dict[str, np.n
         "side": np.array(["none"] * N, dtype=object),
         "min_range": np.where(np.arange(N) > 25, 5.0, 0.0),
         "clearance": np.where(np.arange(N) > 10, 4.0, np.inf),
-        "height": np.full(N, PARAMS["h_d_m"]) + 0.05 * np.sin(t),
+        "height": np.full(N, PARAMS.h_d_m) + 0.05 * np.sin(t),
         "speed_ref": np.ones(N),
         "speed_xd": np.ones(N) - 0.01,
         "segment": zeros,
@@ -139,12 +143,26 @@ def test_write_figures_minimal(tmp_path: Path) -> None:
     assert_pngs(paths, tmp_path)
 
 
-def test_missing_params_are_refused(tmp_path: Path) -> None:
+def test_untyped_or_bad_params_are_refused(tmp_path: Path) -> None:
     world = tiny_world()
     route = Route(np.array([[0.0, 0.0], [40.0, 0.0]]))
     trace = straight_trace(world, np.array([0.0, 0.0]), np.array([40.0, 0.0]))
+    untyped: Any = {"h_d_m": 2, "d_min_m": 2, "phi_max_rad": 1, "v_d_mps": 1}
+    with pytest.raises(TypeError, match="PlotParams"):
+        write_figures(tmp_path, world, route, trace, untyped)
     with pytest.raises(ValueError, match="v_d_mps"):
-        write_figures(tmp_path, world, route, trace, {"h_d_m": 2, "d_min_m": 2, "phi_max_rad": 1})
+        PlotParams(
+            h_d_m=2.0, d_min_m=2.0, phi_max_rad=0.6, v_d_mps=math.nan, side_threshold_rad=0.6
+        )
+
+
+def test_the_side_threshold_is_the_planners_eq7() -> None:
+    """The figure's side threshold follows H_d: the planner's own eq. (7), never a copy."""
+    for h_d, d_min, phi_max in ((2.0, 2.0, 0.6), (1.0, 4.0, 0.6), (5.0, 1.0, 1.2)):
+        planner = PlannerParams(h_d_m=h_d, d_min_m=d_min, phi_max_rad=phi_max)
+        plot = PlotParams.from_planner(planner)
+        assert plot.side_threshold_rad == planner.side_threshold_rad
+        assert plot.side_threshold_rad == min(math.atan2(h_d, d_min), phi_max)
 
 
 def test_without_matplotlib_a_clear_error(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
@@ -158,14 +176,14 @@ def test_without_matplotlib_a_clear_error(tmp_path: Path, monkeypatch: pytest.Mo
 
 
 def test_import_has_no_matplotlib_side_effect() -> None:
-    code = "import sys, sim.plots; assert 'matplotlib' not in sys.modules, 'imported'"
+    code = "import sys, harness.plots; assert 'matplotlib' not in sys.modules, 'imported'"
     subprocess.run(
         [sys.executable, "-c", code], check=True, timeout=60, cwd=Path(__file__).parents[1]
     )
 
 
 def test_nothing_detected_is_a_gap_not_a_distance() -> None:
-    from sim.plots import _detected
+    from harness.plots import _detected
 
     got = _detected([0.0, 3.5, math.nan, 0.0, 1.2])
     assert np.isnan(got[[0, 2, 3]]).all()
@@ -175,7 +193,7 @@ def test_nothing_detected_is_a_gap_not_a_distance() -> None:
 def test_route_terrain_is_taken_at_the_vehicles_progress() -> None:
     """The profile's original-route terrain is on the flown path's axis: a box on the route
     shows up where the vehicle passes it, however far off the route the vehicle is."""
-    from sim.plots import _route_terrain_at_progress
+    from harness.plots import _route_terrain_at_progress
 
     world = World.from_config(
         WorldConfig.model_validate(
@@ -198,7 +216,7 @@ def test_plan_labels_and_legend_hide_nothing() -> None:
     does not cover the goal or start marks."""
     from matplotlib.figure import Figure
 
-    from sim.plots import _place_plan_labels
+    from harness.plots import _place_plan_labels
 
     fig = Figure(figsize=(12, 4), layout="constrained")
     ax = fig.add_subplot()

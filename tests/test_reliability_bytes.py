@@ -23,6 +23,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from companion.service.codec import MavCodec, mavlink2
+from companion.service.counters import ProblemReporter
 from companion.service.link import MemoryLink
 from tests.reliability_inputs import ReceivePath, frame_strategy, mutations
 
@@ -62,7 +63,7 @@ def test_fuzzed_datagrams_are_counted_and_command_nothing(
     path = check_datagrams(SCALE)
     # the problems are reported: one warning per problem counter (every 10 s in service)
     with caplog.at_level(logging.WARNING, logger="companion.service"):
-        path.svc._report_counters()
+        ProblemReporter().report(path.svc.counter_values())
     logged = caplog.text
     for name in ("codec.garbage", "codec.bad_crc", "codec.truncated", "link.oversized_dropped"):
         assert name in logged

@@ -56,7 +56,7 @@ async def flying(**cfg: Any) -> AsyncIterator[tuple[Service, FakeAutopilot, Plan
     task = asyncio.create_task(svc.run())
     await ap.start()
     try:
-        await until(lambda: svc.configured)
+        await until(lambda: svc.status().configured)
         ap.set_mode(GUIDED)
         await ap.wait_for(lambda: len(ap.setpoints()) >= 5)
         yield svc, ap, box
@@ -218,7 +218,7 @@ async def test_bad_field_counted_logged_and_harmless(
             await asyncio.sleep(0.05)
         await until(lambda: svc.counter_values().get(counter, 0) > before, 2.0)
         await ap.wait_for(lambda: len(ap.setpoints()) >= n_sp + 5, 5.0)  # still commanding
-        assert svc.health in (Health.ACTIVE, Health.CRITICAL, Health.EMERGENCY)
+        assert svc.status().health in (Health.ACTIVE, Health.CRITICAL, Health.EMERGENCY)
         name = counter.split(".", 1)[1]
         assert f"{counter.split('.')[0]}.{name}" in caplog.text or name in caplog.text
         if text:
@@ -261,7 +261,7 @@ async def test_other_system_and_component_ignored_logged_and_harmless(
         await ap.wait_for(lambda: len(ap.setpoints()) >= n + 5)
         c = svc.counter_values()
         assert c["conn.other_system"] >= 8 and c["conn.other_component"] >= 4
-        assert svc.ownership.engaged  # the foreign LOITER heartbeats changed nothing
+        assert svc.status().owner == "engaged"  # the foreign LOITER heartbeats changed nothing
         assert "conn.other_system" in caplog.text and "from 7/1" in caplog.text
         assert "conn.other_component" in caplog.text and "from 1/50" in caplog.text
         assert svc.tel.attitude is not None and svc.tel.attitude.roll_rad == 0.0
@@ -287,12 +287,12 @@ async def test_non_finite_planner_setpoint_never_sent_holds_instead(
     task = asyncio.create_task(svc.run())
     await ap.start()
     try:
-        await until(lambda: svc.configured)
+        await until(lambda: svc.status().configured)
         ap.set_mode(GUIDED)
         await until(lambda: svc.counters["planner_errors"] >= 3)
         n = len(ap.setpoints())
         await ap.wait_for(lambda: len(ap.setpoints()) >= n + 3)  # hold setpoints go on
-        assert svc.health is Health.CRITICAL
+        assert svc.status().health is Health.CRITICAL
         assert not task.done()
         for r in ap.setpoints():
             assert math.isfinite(r.msg.lat_int) and math.isfinite(r.msg.alt)

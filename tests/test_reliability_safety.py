@@ -118,13 +118,13 @@ async def test_take_over_failure_holds_and_says_why(caplog: pytest.LogCaptureFix
         raise ValueError("consecutive base points must differ")
 
     async with over_udp(factory=refusing) as (svc, ap, task):
-        await until(lambda: svc.configured)
+        await until(lambda: svc.status().configured)
         ap.set_mode(GUIDED)
         await until(lambda: svc.counters["route_build_failed"] >= 1)
         n = len(ap.setpoints())
         await ap.wait_for(lambda: len(ap.setpoints()) >= n + 10)
         assert not task.done()
-        assert svc.health is Health.CRITICAL
+        assert svc.status().health is Health.CRITICAL
         east = [r.msg.lon_int for r in ap.setpoints()[n:]]
         assert max(east) - min(east) <= 1  # a hold: the same point every time
         assert any("cannot fly route" in t for t in pilot_texts(ap))
@@ -163,9 +163,9 @@ async def test_planner_built_off_the_event_loop() -> None:
         return PlannerBox()(*a)
 
     async with over_udp(factory=slow) as (svc, ap, _):
-        await until(lambda: svc.configured)
+        await until(lambda: svc.status().configured)
         ap.set_mode(GUIDED)
-        await until(lambda: svc.ownership.engaged)
+        await until(lambda: svc.status().owner == "engaged")
         t0 = asyncio.get_running_loop().time()
         n_hb = len(ap.of_type("HEARTBEAT"))
         n_sp = len(ap.setpoints())
@@ -194,7 +194,7 @@ async def test_close_obstacle_never_free_space(
 ) -> None:
     box = PlannerBox()
     async with over_udp(factory=box, ranges_cm={0: 800, 1: 700, 2: 700}) as (svc, ap, _):
-        await until(lambda: svc.configured)
+        await until(lambda: svc.status().configured)
         ap.set_mode(GUIDED)
         await until(lambda: bool(box.made) and len(box.made[-1].inputs) >= 5)
         ap.ranges_cm[0] = cm
@@ -210,7 +210,7 @@ async def test_close_obstacle_never_free_space(
         else:
             # refused: the sensor is stale, the planner is not stepped, the vehicle holds
             assert len(planner.inputs) == n_before
-            assert svc.last_verdict.verdict.value == "hold"
+            assert svc.status().verdict.verdict.value == "hold"
             assert any(t.startswith("sensor 0 refused") for t in pilot_texts(ap))
             assert svc.counter_values()["input.rejected_sensor_limits"] > 0
 
@@ -263,38 +263,38 @@ async def test_auto_start_aborts_on_a_mode_change_by_anyone_else(kind: str, phas
         await asyncio.sleep(max(1.5, 3 * 0.3))  # PX4 would ask for OFFBOARD 0.3 s after climbing
         later = ap.commands[n_cmds:]
         assert not [m for m in later if int(m.command) in (400, 22, 176)], later
-        assert not svc.ownership.engaged and ap.custom_mode == rtl
+        assert svc.status().owner != "engaged" and ap.custom_mode == rtl
         assert any("auto start aborted: mode changed to" in t for t in pilot_texts(ap))
 
 
 async def test_auto_start_waits_for_every_required_sensor_before_arming() -> None:
     async with over_udp(auto_cfg(), sensors_enabled={1, 2}, **on_ground()) as (svc, ap, _):
-        await until(lambda: svc.configured)
+        await until(lambda: svc.status().configured)
         await until(lambda: any("waiting, sensor 0 (front) stale" in t for t in pilot_texts(ap)))
         await asyncio.sleep(1.0)
         assert not commands(ap, 400) and not commands(ap, 176)  # neither armed nor GUIDED
         ap.sensors_enabled = None  # the front sensor starts reporting
         await until(lambda: bool(commands(ap, 400)))
-        await until(lambda: svc.ownership.engaged, 15.0)
+        await until(lambda: svc.status().owner == "engaged", 15.0)
 
 
 async def test_hold_before_take_over_is_announced(caplog: pytest.LogCaptureFixture) -> None:
     """The pilot hands over while a required sensor has never reported: the take-over says
     it holds, and why (not just "flying route")."""
     async with over_udp(sensors_enabled={1, 2}) as (svc, ap, _):
-        await until(lambda: svc.configured)
-        await until(lambda: svc.last_verdict.verdict.value == "hold")
+        await until(lambda: svc.status().configured)
+        await until(lambda: svc.status().verdict.verdict.value == "hold")
         await asyncio.sleep(0.5)  # the hold began well before the hand-over
         ap.set_mode(GUIDED)
-        await until(lambda: svc.ownership.engaged)
+        await until(lambda: svc.status().owner == "engaged")
         await until(lambda: "HOLD: sensor 0 (front) stale" in pilot_texts(ap))
-        assert svc.health is Health.CRITICAL
+        assert svc.status().health is Health.CRITICAL
 
 
 async def test_auto_start_with_an_empty_mission_does_not_take_off(
     monkeypatch: pytest.MonkeyPatch,
 ) -> None:
-    import companion.service.service as service_mod
+    import companion.service.supervisor as service_mod
 
     monkeypatch.setattr(service_mod, "MISSION_RETRY_S", 0.5)
     cfg = make_config(
@@ -323,7 +323,7 @@ async def test_auto_start_retries_every_refusal_and_shows_the_full_reason(
     async with over_udp(
         auto_cfg(), result_script=script, refusal_text=LONG_REASON, **on_ground()
     ) as (svc, ap, _):
-        await until(lambda: svc.ownership.engaged, 25.0)
+        await until(lambda: svc.status().owner == "engaged", 25.0)
         assert len(commands(ap, 400)) >= 5
         for name in ("TEMPORARILY_REJECTED", "FAILED", "DENIED", "no ack"):
             assert name in caplog.text
@@ -344,7 +344,7 @@ async def test_auto_start_gives_up_at_arm_timeout_with_the_full_reason() -> None
         assert failed
         joined = "".join(m.text for m in chunks if m.id == failed[0].id)
         assert "DENIED" in joined and LONG_REASON in joined
-        assert not svc.ownership.engaged
+        assert svc.status().owner != "engaged"
 
 
 # === 7. a bound on accepted position jumps ================================================
@@ -353,7 +353,7 @@ async def test_auto_start_gives_up_at_arm_timeout_with_the_full_reason() -> None
 async def test_position_jump_over_the_limit_stops_and_is_never_accepted() -> None:
     cfg = make_config(failsafe={"resume_after_s": 0.2, "max_accepted_jump_m": 50.0})
     async with over_udp(cfg) as (svc, ap, task):
-        await until(lambda: svc.configured)
+        await until(lambda: svc.status().configured)
         ap.set_mode(GUIDED)
         await ap.wait_for(lambda: len(ap.setpoints()) >= 10)
         ap.alt_amsl += 1000.0  # the estimate says 1 km higher, and stays there
@@ -362,9 +362,9 @@ async def test_position_jump_over_the_limit_stops_and_is_never_accepted() -> Non
         n = len(ap.setpoints())
         await asyncio.sleep(0.5)
         assert len(ap.setpoints()) == n  # stopped commanding
-        assert not svc._shift.any()  # the plan was not re-based on it
-        assert svc.tel.jumps_accepted == 0
-        assert svc.health is Health.EMERGENCY and not task.done()
+        assert not svc.status().shift_enu.any()  # the plan was not re-based on it
+        assert svc.counter_values().get("input.position_jump_accepted", 0) == 0
+        assert svc.status().health is Health.EMERGENCY and not task.done()
         assert any("position jump of 1000 m over the 50 m limit" in t for t in pilot_texts(ap))
         ap.alt_amsl -= 1000.0  # the estimate comes back: flying resumes
         await ap.wait_for(lambda: len(ap.setpoints()) >= n + 5, 5.0)
@@ -372,12 +372,12 @@ async def test_position_jump_over_the_limit_stops_and_is_never_accepted() -> Non
 
 async def test_position_jump_within_the_limit_is_still_accepted() -> None:
     async with over_udp() as (svc, ap, _):
-        await until(lambda: svc.configured)
+        await until(lambda: svc.status().configured)
         ap.set_mode(GUIDED)
         await ap.wait_for(lambda: len(ap.setpoints()) >= 10)
         ap.alt_amsl += 20.0  # an estimator reset of 20 m
-        await until(lambda: svc.tel.jumps_accepted == 1)
-        assert svc._shift[2] == pytest.approx(20.0, abs=1.0)
+        await until(lambda: svc.counter_values().get("input.position_jump_accepted", 0) == 1)
+        assert svc.status().shift_enu[2] == pytest.approx(20.0, abs=1.0)
 
 
 # === 6. one forged timestamp neither resets nor stops ======================================
@@ -392,7 +392,7 @@ async def test_single_forged_timestamp_neither_resets_nor_stops(attack: str) -> 
     box = PlannerBox()
     async with over_udp(factory=box) as (svc, ap, _):
         ap._boot -= 30.0
-        await until(lambda: svc.configured)
+        await until(lambda: svc.status().configured)
         ap.set_mode(GUIDED)
         await ap.wait_for(lambda: len(ap.setpoints()) >= 10)
         t0 = __import__("time").monotonic()  # the fake stamps receipts with time.monotonic
@@ -418,7 +418,7 @@ async def test_single_forged_timestamp_neither_resets_nor_stops(attack: str) -> 
             await asyncio.sleep(0.7)
         await asyncio.sleep(0.5)
         sp = [r.t for r in ap.setpoints()[n0:]]
-        assert svc.tel.reboots == 0
+        assert svc.counter_values().get("input.time_boot_backwards", 0) == 0
         assert svc.counter_values()["input.time_boot_suspect"] >= 3
         assert len(box.made) == 1  # never restarted
         assert svc.counters["released"] == 0
@@ -431,11 +431,11 @@ async def test_single_forged_timestamp_neither_resets_nor_stops(attack: str) -> 
 async def test_a_real_reboot_is_still_recognised(caplog: pytest.LogCaptureFixture) -> None:
     async with over_udp() as (svc, ap, _):
         ap._boot -= 30.0
-        await until(lambda: svc.configured)
+        await until(lambda: svc.status().configured)
         ap._boot = __import__("time").monotonic()  # the autopilot's clock restarts at 0
-        await until(lambda: svc.tel.reboots == 1)
+        await until(lambda: svc.counter_values().get("input.time_boot_backwards", 0) == 1)
         assert "reboot? reconfiguring" in caplog.text
-        await until(lambda: svc.configured)
+        await until(lambda: svc.status().configured)
 
 
 # === 4. system_id auto never picks a stranger ==============================================
@@ -451,7 +451,7 @@ async def test_auto_system_id_with_two_autopilots_chooses_none(
         await own.start()
         try:
             await asyncio.sleep(2.5)
-            assert svc.conn.target_system is None and not svc.configured
+            assert svc.status().target_system is None and not svc.status().configured
             own.set_mode(GUIDED)
             await asyncio.sleep(0.5)
             assert not stranger.setpoints() and not own.setpoints()
@@ -464,16 +464,18 @@ async def test_second_autopilot_after_the_choice_blocks_take_over(
     caplog: pytest.LogCaptureFixture,
 ) -> None:
     async with over_udp() as (svc, own, _):
-        await until(lambda: svc.configured)
-        assert svc.conn.target_system == 1
+        await until(lambda: svc.status().configured)
+        assert svc.status().target_system == 1
         stranger = FakeAutopilot(UdpOutLink(*svc.link.local_address), sysid=2)  # type: ignore[attr-defined]
         await stranger.start()
         try:
             await until(lambda: "a second autopilot (system 2)" in caplog.text)
             own.set_mode(GUIDED)
             await asyncio.sleep(0.8)
-            assert not svc.ownership.engaged and not own.setpoints() and not stranger.setpoints()
-            assert svc.conn.target_system == 1  # never switched
+            assert (
+                svc.status().owner != "engaged" and not own.setpoints() and not stranger.setpoints()
+            )
+            assert svc.status().target_system == 1  # never switched
             assert any("second autopilot 2 heard" in t for t in pilot_texts(own))
         finally:
             await stranger.stop()
@@ -499,20 +501,20 @@ async def test_autopilot_killed_mid_flight_and_restarted(caplog: pytest.LogCaptu
     """Killed while flying (auto start done): the service stops commanding and says why;
     the new boot (on the ground, disarmed) is neither armed nor taken off again."""
     async with over_udp(auto_cfg(), **on_ground()) as (svc, ap, task):
-        await until(lambda: svc.ownership.engaged, 20.0)
+        await until(lambda: svc.status().owner == "engaged", 20.0)
         addr = svc.link.local_address  # type: ignore[attr-defined]
         await ap.stop()  # killed
-        await until(lambda: svc.health is Health.EMERGENCY)
+        await until(lambda: svc.status().health is Health.EMERGENCY)
         await until(lambda: "STOP: autopilot heartbeat lost" in caplog.text)
         await asyncio.sleep(1.0)
         reborn = FakeAutopilot(UdpOutLink(*addr), **on_ground(custom_mode=STABILIZE))
         await reborn.start()
         try:
-            await until(lambda: svc.configured and svc.tel.heartbeat is not None, 10.0)
+            await until(lambda: svc.status().configured and svc.tel.heartbeat is not None, 10.0)
             await asyncio.sleep(2.0)
             assert not commands(reborn, 400) and not commands(reborn, 22)
             assert not commands(reborn, 176) and not reborn.setpoints()
-            assert not svc.ownership.engaged and not task.done()
+            assert svc.status().owner != "engaged" and not task.done()
         finally:
             await reborn.stop()
 
@@ -669,7 +671,7 @@ async def test_missing_serial_device_is_said_and_retried(
 async def test_flight_log_failing_mid_flight_keeps_flying_and_says_so(tmp_path: Path) -> None:
     cfg = make_config(logging={"flight_log_dir": str(tmp_path / "log")})
     async with over_udp(cfg) as (svc, ap, task):
-        await until(lambda: svc.configured)
+        await until(lambda: svc.status().configured)
         ap.set_mode(GUIDED)
         await ap.wait_for(lambda: len(ap.setpoints()) >= 10)
         writer = svc.flight_log
@@ -697,7 +699,7 @@ async def test_flight_log_failing_mid_flight_keeps_flying_and_says_so(tmp_path: 
         await until(lambda: any("flight log failing" in t for t in pilot_texts(ap)), 5.0)
         n = len(ap.setpoints())
         await ap.wait_for(lambda: len(ap.setpoints()) >= n + 20)  # still flying
-        assert svc.ownership.engaged and not task.done()
+        assert svc.status().owner == "engaged" and not task.done()
         writer._open = real_open  # type: ignore[method-assign]
         writer._file = None
         await until(lambda: "flight log writing again" in pilot_texts(ap), 5.0)

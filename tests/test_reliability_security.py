@@ -102,7 +102,7 @@ async def test_signing_timestamp_persists_across_restarts(
         ap.codec.mav.signing.stream_timestamps.update(seen)  # the autopilot remembers
         task = asyncio.create_task(svc.run())
         await ap.start()
-        await ap.wait_for(lambda: len(ap.of_type("HEARTBEAT")) >= 2 and svc.configured)
+        await ap.wait_for(lambda: len(ap.of_type("HEARTBEAT")) >= 2 and svc.status().configured)
         svc.stop()
         assert await asyncio.wait_for(task, 5) == 0
         await ap.stop()

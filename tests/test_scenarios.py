@@ -5,8 +5,8 @@ from pathlib import Path
 
 import pytest
 
-from sim import metrics as metrics_mod
-from sim.closed_loop import run
+from harness import metrics as metrics_mod
+from harness.closed_loop import run
 from sim.scenario import load_scenario
 from sim.world import World
 

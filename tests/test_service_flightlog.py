@@ -43,7 +43,7 @@ async def test_service_writes_a_cycle_per_line(tmp_path: Path) -> None:
     ap = FakeAutopilot(b)
     task = asyncio.create_task(svc.run())
     await ap.start()
-    while not svc.configured:
+    while not svc.status().configured:
         await asyncio.sleep(0.01)
     ap.set_mode(4)
     await ap.wait_for(lambda: len(ap.setpoints()) >= 10)

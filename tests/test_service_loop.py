@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import dataclasses
 import math
 from collections.abc import AsyncIterator
 from typing import Any
@@ -53,15 +54,15 @@ async def until(pred: Any, timeout: float = 5.0) -> None:
 
 async def test_detects_ardupilot_configures_and_waits_in_standby() -> None:
     async with running() as (svc, ap, _):
-        await until(lambda: svc.configured)
-        assert svc.kind is not None and svc.kind.value == "ardupilot"
-        assert int(svc.setpoint_frame or 0) == 6
+        await until(lambda: svc.status().configured)
+        assert svc.status().autopilot is not None and svc.status().autopilot.value == "ardupilot"
+        assert int(svc.status().setpoint_frame or 0) == 6
         intervals = {
             int(c.param1): c.param2 for c in ap.commands if int(c.command) == 511
         }  # SET_MESSAGE_INTERVAL
         assert intervals == {30: 50_000.0, 33: 50_000.0, 132: 50_000.0, 242: 2_000_000.0}
         assert any(int(c.command) == 512 and int(c.param1) == 242 for c in ap.commands)
-        await until(lambda: svc.health is Health.STANDBY)
+        await until(lambda: svc.status().health is Health.STANDBY)
         await ap.wait_for(lambda: any(r.msg.system_status == 3 for r in ap.of_type("HEARTBEAT")))
         hb = ap.of_type("HEARTBEAT")[-1].msg
         assert (hb.type, hb.autopilot) == (18, 8)
@@ -71,14 +72,14 @@ async def test_detects_ardupilot_configures_and_waits_in_standby() -> None:
 
 async def test_detects_px4_and_uses_global_frame() -> None:
     async with running(kind="px4") as (svc, _, _):
-        await until(lambda: svc.configured)
-        assert svc.kind is not None and svc.kind.value == "px4"
-        assert int(svc.setpoint_frame or 0) == 5
+        await until(lambda: svc.status().configured)
+        assert svc.status().autopilot is not None and svc.status().autopilot.value == "px4"
+        assert int(svc.status().setpoint_frame or 0) == 5
 
 
 async def test_ignores_other_systems_until_and_after_lock() -> None:
     async with running(sysid=7) as (svc, ap, _):
-        await until(lambda: svc.configured)
+        await until(lambda: svc.status().configured)
         # a second "autopilot" with another system id on the same link is ignored
         intruder = FakeAutopilot(ap.link, sysid=9)
         intruder.custom_mode = GUIDED
@@ -86,7 +87,7 @@ async def test_ignores_other_systems_until_and_after_lock() -> None:
             intruder.heartbeat()
             intruder.telemetry()
         await asyncio.sleep(0.1)
-        assert svc.conn.target_system == 7
+        assert svc.status().target_system == 7
         assert svc.counter_values()["conn.other_system"] >= 10
         assert svc.codec.system_id == 7  # our id follows the autopilot's
         assert not ap.setpoints()
@@ -94,10 +95,10 @@ async def test_ignores_other_systems_until_and_after_lock() -> None:
 
 async def test_guided_engages_and_setpoints_are_position_velocity_yaw() -> None:
     async with running() as (svc, ap, box):
-        await until(lambda: svc.configured)
+        await until(lambda: svc.status().configured)
         ap.set_mode(GUIDED)
         await ap.wait_for(lambda: len(ap.setpoints()) >= 10)
-        assert svc.health is Health.ACTIVE
+        assert svc.status().health is Health.ACTIVE
         planner = box.made[0]
         route = planner.route
         assert route is not None
@@ -122,14 +123,14 @@ async def test_guided_engages_and_setpoints_are_position_velocity_yaw() -> None:
 
 async def test_mode_change_stops_setpoints_within_one_cycle_and_never_switches_back() -> None:
     async with running(cfg=make_config(control={"reengage": False})) as (svc, ap, _):
-        await until(lambda: svc.configured)
+        await until(lambda: svc.status().configured)
         ap.set_mode(GUIDED)
         await ap.wait_for(lambda: len(ap.setpoints()) >= 5)
         ap.set_mode(LOITER)
         n = len(ap.setpoints())
         await asyncio.sleep(0.5)
         assert len(ap.setpoints()) <= n + 1  # at most one already on its way
-        assert svc.ownership.state.value == "released"
+        assert svc.status().owner.value == "released"
         assert not any(int(c.command) == 176 for c in ap.commands)  # no mode change by us
         ap.set_mode(GUIDED)  # re-engage disabled: stays silent
         await asyncio.sleep(0.3)
@@ -141,7 +142,7 @@ async def test_pilot_reengage_restarts_planner_from_current_position() -> None:
     # the fake vehicle teleports: no jump detection
     cfg = make_config(failsafe={"max_speed_mps": 1000.0, "max_position_jump_m": 1000.0})
     async with running(cfg=cfg) as (svc, ap, box):
-        await until(lambda: svc.configured)
+        await until(lambda: svc.status().configured)
         ap.set_mode(GUIDED)
         await ap.wait_for(lambda: len(ap.setpoints()) >= 5)
         ap.set_mode(LOITER)
@@ -156,22 +157,22 @@ async def test_pilot_reengage_restarts_planner_from_current_position() -> None:
 
 async def test_disarm_releases() -> None:
     async with running() as (svc, ap, _):
-        await until(lambda: svc.configured)
+        await until(lambda: svc.status().configured)
         ap.set_mode(GUIDED)
         await ap.wait_for(lambda: len(ap.setpoints()) >= 3)
         ap.armed = False
         ap.heartbeat()
-        await until(lambda: svc.ownership.state.value == "released")
+        await until(lambda: svc.status().owner.value == "released")
 
 
 async def test_heartbeat_loss_stops_commanding_and_recovers() -> None:
     async with running() as (svc, ap, _):
-        await until(lambda: svc.configured)
+        await until(lambda: svc.status().configured)
         ap.set_mode(GUIDED)
         await ap.wait_for(lambda: len(ap.setpoints()) >= 5)
         ap.heartbeat_enabled = False
         ap.telemetry_enabled = False
-        await until(lambda: svc.health is Health.EMERGENCY, 2.0)
+        await until(lambda: svc.status().health is Health.EMERGENCY, 2.0)
         n = len(ap.setpoints())
         await asyncio.sleep(0.3)
         assert len(ap.setpoints()) == n
@@ -179,7 +180,7 @@ async def test_heartbeat_loss_stops_commanding_and_recovers() -> None:
         ap.heartbeat_enabled = True
         ap.telemetry_enabled = True
         await ap.wait_for(lambda: len(ap.setpoints()) > n + 3, 3.0)
-        assert svc.health is Health.ACTIVE
+        assert svc.status().health is Health.ACTIVE
         # the autopilot might have rebooted: message rates are requested again
         await ap.wait_for(
             lambda: sum(1 for c in ap.commands if int(c.command) == 511) > intervals_before
@@ -188,12 +189,12 @@ async def test_heartbeat_loss_stops_commanding_and_recovers() -> None:
 
 async def test_stale_sensor_holds_at_current_position_then_resumes() -> None:
     async with running() as (svc, ap, box):
-        await until(lambda: svc.configured)
+        await until(lambda: svc.status().configured)
         ap.set_mode(GUIDED)
         await ap.wait_for(lambda: len(ap.setpoints()) >= 5)
         steps = len(box.made[0].inputs)
         ap.sensors_enabled = {0, 1}  # back surface sensor goes quiet
-        await until(lambda: svc.health is Health.CRITICAL, 2.0)
+        await until(lambda: svc.status().health is Health.CRITICAL, 2.0)
         n = len(ap.setpoints())
         await ap.wait_for(lambda: len(ap.setpoints()) >= n + 5)
         hold = ap.setpoints()[-1].msg
@@ -207,7 +208,7 @@ async def test_stale_sensor_holds_at_current_position_then_resumes() -> None:
         texts = [r.msg.text for r in ap.of_type("STATUSTEXT")]
         assert any(t.startswith("HOLD: sensor 2 (h2) stale") for t in texts)
         ap.sensors_enabled = None
-        await until(lambda: svc.health is Health.ACTIVE, 2.0)
+        await until(lambda: svc.status().health is Health.ACTIVE, 2.0)
         await until(lambda: len(box.made[0].inputs) > frozen)
         assert any(r.msg.text.startswith("resumed") for r in ap.of_type("STATUSTEXT"))
         for _, ranges, _ in box.made[0].inputs:
@@ -216,36 +217,38 @@ async def test_stale_sensor_holds_at_current_position_then_resumes() -> None:
 
 async def test_stale_position_stops_commanding() -> None:
     async with running() as (svc, ap, _):
-        await until(lambda: svc.configured)
+        await until(lambda: svc.status().configured)
         ap.set_mode(GUIDED)
         await ap.wait_for(lambda: len(ap.setpoints()) >= 5)
         ap.telemetry_enabled = False  # heartbeats go on, position stops
-        await until(lambda: svc.health is Health.EMERGENCY, 2.0)
+        await until(lambda: svc.status().health is Health.EMERGENCY, 2.0)
         n = len(ap.setpoints())
         await asyncio.sleep(0.3)
         assert len(ap.setpoints()) == n
-        assert svc.last_verdict.reason == "position stale"
+        assert svc.status().verdict.reason == "position stale"
 
 
 async def test_nan_attitude_rejected_counted_and_never_reaches_planner() -> None:
     async with running() as (svc, ap, box):
-        await until(lambda: svc.configured)
+        await until(lambda: svc.status().configured)
         ap.set_mode(GUIDED)
         await ap.wait_for(lambda: len(ap.setpoints()) >= 3)
         ap.roll = math.nan
         await until(lambda: svc.counter_values().get("input.rejected_attitude_nonfinite", 0) > 5)
-        await until(lambda: svc.health is Health.CRITICAL, 2.0)  # attitude goes stale: hold
+        await until(
+            lambda: svc.status().health is Health.CRITICAL, 2.0
+        )  # attitude goes stale: hold
         ap.roll = math.inf
         await asyncio.sleep(0.1)
         ap.roll = 0.0
-        await until(lambda: svc.health is Health.ACTIVE, 2.0)
+        await until(lambda: svc.status().health is Health.ACTIVE, 2.0)
         for state, _, _ in box.made[0].inputs:
             assert math.isfinite(state.roll_rad)
 
 
 async def test_distance_sensor_mapping_units_and_orientation_check() -> None:
     async with running() as (svc, ap, box):
-        await until(lambda: svc.configured)
+        await until(lambda: svc.status().configured)
         ap.ranges_cm = {0: 350, 1: 5, 2: 1000}  # 3.5 m; below min; at max
         ap.set_mode(GUIDED)
         await until(lambda: len(box.made) == 1 and len(box.made[0].inputs) > 3)
@@ -256,12 +259,12 @@ async def test_distance_sensor_mapping_units_and_orientation_check() -> None:
         await until(
             lambda: svc.counter_values().get("input.rejected_sensor_orientation_mismatch", 0) > 3
         )
-        await until(lambda: svc.health is Health.CRITICAL, 2.0)
+        await until(lambda: svc.status().health is Health.CRITICAL, 2.0)
 
 
 async def test_garbage_and_malformed_frames_do_not_crash() -> None:
     async with running() as (svc, ap, _):
-        await until(lambda: svc.configured)
+        await until(lambda: svc.status().configured)
         ap.set_mode(GUIDED)
         await ap.wait_for(lambda: len(ap.setpoints()) >= 3)
         rng = np.random.default_rng(1)
@@ -277,12 +280,12 @@ async def test_garbage_and_malformed_frames_do_not_crash() -> None:
         await ap.wait_for(lambda: len(ap.setpoints()) > n + 5)
         c = svc.counter_values()
         assert c["codec.garbage"] > 0 and c["codec.bad_crc"] >= 1 and c["codec.truncated"] >= 1
-        assert svc.health is Health.ACTIVE
+        assert svc.status().health is Health.ACTIVE
 
 
 async def test_interval_request_denied_is_counted_and_service_goes_on() -> None:
     async with running(command_results={511: 4}) as (svc, ap, _):  # MAV_RESULT_FAILED
-        await until(lambda: svc.configured)
+        await until(lambda: svc.status().configured)
         assert svc.counter_values()["service.interval_request_failed"] == 4
         await ap.wait_for(
             lambda: any("rate request failed" in r.msg.text for r in ap.of_type("STATUSTEXT"))
@@ -291,12 +294,12 @@ async def test_interval_request_denied_is_counted_and_service_goes_on() -> None:
 
 async def test_planner_exception_holds_instead_of_crashing() -> None:
     async with running() as (svc, ap, box):
-        await until(lambda: svc.configured)
+        await until(lambda: svc.status().configured)
         ap.set_mode(GUIDED)
         await until(lambda: len(box.made) == 1 and len(box.made[0].inputs) > 2)
         box.made[0].fail = True
         await until(lambda: svc.counter_values().get("service.planner_errors", 0) > 2)
-        assert svc.health is Health.CRITICAL
+        assert svc.status().health is Health.CRITICAL
         hold = ap.setpoints()[-1].msg
         assert (hold.vx, hold.vy, hold.vz) == (0.0, 0.0, 0.0)
 
@@ -306,9 +309,9 @@ async def test_mission_route_skips_ardupilot_home() -> None:
     dlat = 20.0 / 6_378_137.0 * 180 / math.pi
     mission = [(HOME[0] + dlat, HOME[1]), (HOME[0] + 2 * dlat, HOME[1])]
     async with running(cfg=cfg, mission=mission) as (svc, ap, box):
-        await until(lambda: svc.configured)
-        assert svc.route_source_points is not None
-        np.testing.assert_allclose(svc.route_source_points, [[0, 20], [0, 40]], atol=0.2)
+        await until(lambda: svc.status().configured)
+        assert svc.status().route_points_xy is not None
+        np.testing.assert_allclose(svc.status().route_points_xy, [[0, 20], [0, 40]], atol=0.2)
         assert ap.of_type("MISSION_ACK")
         ap.set_mode(GUIDED)
         await until(lambda: len(box.made) == 1)
@@ -354,10 +357,35 @@ async def test_arming_refused_then_accepted_is_retried() -> None:
 
 async def test_set_desired_height_reaches_planner() -> None:
     async with running() as (svc, ap, box):
-        await until(lambda: svc.configured)
+        await until(lambda: svc.status().configured)
         ap.set_mode(GUIDED)
         await until(lambda: len(box.made) == 1 and svc.planner is not None)
         svc.set_desired_height(3.5)
         assert box.made[0].h_d == 3.5
         with pytest.raises(ValueError):
             svc.set_desired_height(math.nan)
+
+
+async def test_status_is_a_frozen_snapshot_of_what_the_service_does() -> None:
+    async with running() as (svc, ap, _box):
+        before = svc.status()
+        assert before.health is Health.BOOT and before.planner.value == "none"
+        assert before.freshness.heartbeat_age_s is None and before.last_setpoint is None
+        with pytest.raises(dataclasses.FrozenInstanceError):
+            before.health = Health.ACTIVE  # type: ignore[misc]
+        await until(lambda: svc.status().configured)
+        ap.set_mode(GUIDED)
+        await ap.wait_for(lambda: len(ap.setpoints()) >= 5)
+        s = svc.status()
+        assert s.owner.value == "engaged" and s.planner.value == "flying"
+        assert s.mode == "GUIDED" and s.target_system == 1
+        assert not s.holding and s.hold_reason == "" and s.last_setpoint_kind == "planner"
+        assert s.last_setpoint is not None and s.h_d_m == svc.cfg.planner.h_d_m
+        assert s.freshness.position_age_s is not None and s.freshness.position_age_s < 1.0
+        assert len(s.freshness.range_ages_s) == 3 and s.freshness.stale_sensor_ids == ()
+        assert s.counters["service.setpoints_sent"] >= 5
+        assert before.health is Health.BOOT  # the old snapshot did not change
+        ap.sensors_enabled = {0, 1}  # sensor 2 goes quiet: hold, and the snapshot says why
+        await until(lambda: svc.status().holding, 3.0)
+        s = svc.status()
+        assert "sensor" in s.hold_reason and s.freshness.stale_sensor_ids == (2,)

@@ -65,7 +65,7 @@ async def fly(personality: str, until_s: float, **sim: Any) -> tuple[Service, An
 async def test_service_flies_towards_the_goal_in_lockstep(personality: str) -> None:
     svc, server = await fly(personality, 22.0)
     assert server.stats.lockstep_stalls == 0
-    assert svc.ownership.engaged and svc.counters["planner_starts"] == 1
+    assert svc.status().owner == "engaged" and svc.counters["planner_starts"] == 1
     c = svc.counter_values()
     assert c["codec.bad_crc"] == 0 and c.get("service.planner_errors", 0) == 0
     truth = server.truth
@@ -82,7 +82,7 @@ async def test_pilot_mode_change_stops_the_service() -> None:
     svc, server = await fly(
         "ardupilot", 17.0, faults={"mode_changes": [{"at_s": 15.0, "mode": "LOITER"}]}
     )
-    assert svc.ownership.state.value == "released"
+    assert svc.status().owner.value == "released"
     assert svc.counters["released"] == 1
     assert server.truth[-1].mode == "LOITER"  # and it stays there: no mode change by us
 
@@ -102,4 +102,4 @@ async def test_auto_start_retries_while_the_simulator_refuses_after_boot(
     caplog.set_level("INFO", logger="companion")
     svc, _ = await fly(personality, 24.0, prearm_delay_s=4.0)
     assert "refused" in caplog.text and reason in caplog.text
-    assert svc.ownership.engaged and svc.counters["auto_start_failed"] == 0
+    assert svc.status().owner == "engaged" and svc.counters["auto_start_failed"] == 0

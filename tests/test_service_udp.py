@@ -65,23 +65,23 @@ async def over_udp(
 
 async def test_udp_detect_configure_engage_and_mode_change() -> None:
     async with over_udp() as (svc, ap, _):
-        await until(lambda: svc.configured)
-        assert svc.kind is not None and svc.kind.value == "ardupilot"
+        await until(lambda: svc.status().configured)
+        assert svc.status().autopilot is not None and svc.status().autopilot.value == "ardupilot"
         acks_expected = {30, 33, 132, 242}
         assert {int(c.param1) for c in ap.commands if int(c.command) == 511} == acks_expected
         ap.set_mode(GUIDED)
         await ap.wait_for(lambda: len(ap.setpoints()) >= 10)
-        assert svc.health is Health.ACTIVE
+        assert svc.status().health is Health.ACTIVE
         ap.set_mode(LOITER)
         n = len(ap.setpoints())
         await asyncio.sleep(0.4)
         assert len(ap.setpoints()) <= n + 1  # stopped within one cycle
-        assert svc.health is Health.STANDBY
+        assert svc.status().health is Health.STANDBY
 
 
 async def test_udp_px4_detected_frame_5() -> None:
     async with over_udp(kind="px4") as (svc, ap, _):
-        await until(lambda: svc.configured)
+        await until(lambda: svc.status().configured)
         ap.set_mode(6 << 16)  # OFFBOARD
         await ap.wait_for(lambda: len(ap.setpoints()) >= 3)
         assert ap.setpoints()[-1].msg.coordinate_frame == 5
@@ -89,11 +89,11 @@ async def test_udp_px4_detected_frame_5() -> None:
 
 async def test_udp_heartbeat_loss_and_recovery() -> None:
     async with over_udp() as (svc, ap, _):
-        await until(lambda: svc.configured)
+        await until(lambda: svc.status().configured)
         ap.set_mode(GUIDED)
         await ap.wait_for(lambda: len(ap.setpoints()) >= 5)
         ap.heartbeat_enabled = ap.telemetry_enabled = False
-        await until(lambda: svc.health is Health.EMERGENCY, 2.0)
+        await until(lambda: svc.status().health is Health.EMERGENCY, 2.0)
         n = len(ap.setpoints())
         await asyncio.sleep(0.3)
         assert len(ap.setpoints()) == n
@@ -103,7 +103,7 @@ async def test_udp_heartbeat_loss_and_recovery() -> None:
 
 async def test_udp_garbage_oversized_and_foreign_datagrams() -> None:
     async with over_udp() as (svc, ap, _):
-        await until(lambda: svc.configured)
+        await until(lambda: svc.status().configured)
         ap.set_mode(GUIDED)
         await ap.wait_for(lambda: len(ap.setpoints()) >= 3)
         host, port = svc.link.local_address  # type: ignore[attr-defined]
@@ -124,7 +124,7 @@ async def test_udp_garbage_oversized_and_foreign_datagrams() -> None:
         c = svc.counter_values()
         assert c["link.oversized_dropped"] == 1
         assert c["codec.garbage"] > 0
-        assert svc.health is Health.ACTIVE
+        assert svc.status().health is Health.ACTIVE
         # replies still go to the autopilot's address, not to the last sender
         assert svc.link.peer == ap.link.local_address  # type: ignore[attr-defined]
 
@@ -138,7 +138,7 @@ async def test_udp_signing_rejects_unsigned_and_replayed(tmp_path: Path) -> None
         signing={"enabled": True, "key_file": str(key_file), "state_file": str(state)}
     )
     async with over_udp(cfg, signing_key=KEY) as (svc, ap, _):
-        await until(lambda: svc.configured)
+        await until(lambda: svc.status().configured)
         ap.set_mode(GUIDED)
         await ap.wait_for(lambda: len(ap.setpoints()) >= 3)
         assert all(r.msg.get_signed() for r in ap.setpoints())  # ours are signed
@@ -161,7 +161,7 @@ async def test_udp_signing_rejects_unsigned_and_replayed(tmp_path: Path) -> None
         c = svc.counter_values()
         assert c["codec.unsigned_rejected"] >= 20
         assert c["codec.bad_signature"] >= 5
-        assert svc.ownership.engaged  # the unsigned LOITER heartbeats changed nothing
+        assert svc.status().owner == "engaged"  # the unsigned LOITER heartbeats changed nothing
     saved = state.read_text()
     assert '"timestamp"' in saved
 
@@ -196,7 +196,7 @@ async def test_udp_sim_time_lockstep() -> None:
                 answered.clear()
             setpoints_at_answer.append(len(ap.setpoints()))
 
-        while not svc.configured or svc.last_verdict.verdict.value != "run":
+        while not svc.status().configured or svc.status().verdict.verdict.value != "run":
             await tick()  # configured, and the inputs good for resume_after_s
         ap.set_mode(GUIDED)
         start_cycles = svc.counters["cycles"]
@@ -216,7 +216,7 @@ async def test_udp_sim_time_lockstep() -> None:
 
 async def test_timesync_answered_immediately_in_monotonic_mode() -> None:
     async with over_udp() as (svc, ap, _):
-        await until(lambda: svc.configured)
+        await until(lambda: svc.status().configured)
         ap.send(mavlink2.MAVLink_timesync_message(0, 123456789))
         await ap.wait_for(
             lambda: any(
@@ -267,7 +267,7 @@ async def test_tcp_link_end_to_end() -> None:
     svc = Service(make_config(), link, planner_factory=box, notifier=SystemdNotifier({}))
     task = asyncio.create_task(svc.run())
     try:
-        await until(lambda: svc.configured)
+        await until(lambda: svc.status().configured)
         ap.set_mode(GUIDED)
         await ap.wait_for(lambda: len(ap.setpoints()) >= 5)
     finally:

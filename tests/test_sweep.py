@@ -1,4 +1,4 @@
-"""sim/sweep and `companion sweep`: records, determinism across executors, bad input, Ctrl-C."""
+"""harness.sweep and `companion sweep`: records, determinism across executors, bad input, Ctrl-C."""
 
 from __future__ import annotations
 
@@ -13,8 +13,7 @@ import pytest
 
 from companion.cli import main
 from companion.tuning import SensorConfig
-from sim.scenario import load_scenario
-from sim.sweep import (
+from harness.sweep import (
     DEFAULT_LAYOUTS,
     FAULTS,
     RECORD_FIELDS,
@@ -30,6 +29,7 @@ from sim.sweep import (
     sweep,
     tasks_for,
 )
+from sim.scenario import load_scenario
 from sim.worldgen import WorldGenConfig, scenario
 
 # Tiny worlds (one obstacle motif, a 20-30 m route, 30-40 s flown) keep the default suite
@@ -255,7 +255,7 @@ def load_scenario_sensors() -> list[SensorConfig]:
 @pytest.mark.timeout(1800)  # 840 s seen on a 2-core box with a load of 8; ~1 min when idle
 def test_ray_gives_the_process_pool_records() -> None:
     ray = pytest.importorskip("ray", reason="ray is not installed (pip install '.[ray]')")
-    from sim.sweep import run_ray
+    from harness.sweep import run_ray
 
     tasks = _tasks(range(7))[:20]
     assert len(tasks) == 20

@@ -488,7 +488,7 @@ def test_raycast_matches_the_marching_reference(seed: int, heightmap: bool, tmp_
     feats = [*EVERY_FEATURE, hm] if heightmap else list(EVERY_FEATURE)
     w = World.from_config(WorldConfig.model_validate({"features": feats}), tmp_path)
     o, d, rng = random_rays(w, 1000, seed)
-    ref = w._raycast_march(o, d, rng, step_m=0.005, tol_m=1e-5)
+    ref = w.raycast_march(o, d, rng, step_m=0.005, tol_m=1e-5)
     assert_same_ranges(w.raycast(o, d, rng), ref)
     # Coarser scans give the same answers.
     assert_same_ranges(w.raycast(o, d, rng, step_m=1.0), ref)
@@ -497,7 +497,7 @@ def test_raycast_matches_the_marching_reference(seed: int, heightmap: bool, tmp_
 def test_raycast_solids_only_is_closed_form() -> None:
     w = world(*EVERY_FEATURE[3:])
     o, d, rng = random_rays(w, 1000, 3)
-    ref = w._raycast_march(o, d, rng, step_m=0.005, tol_m=1e-6)
+    ref = w.raycast_march(o, d, rng, step_m=0.005, tol_m=1e-6)
     assert_same_ranges(w.raycast(o, d, rng), ref, atol=1e-4)
 
 
@@ -509,7 +509,7 @@ def test_raycast_grazing_a_hill_top() -> None:
     o = np.column_stack([np.zeros_like(zs), np.zeros_like(zs), zs])
     d = np.tile([1.0, 0.0, 0.0], (zs.size, 1))
     r = w.raycast(o, d, 20.0)
-    assert_same_ranges(r, w._raycast_march(o, d, 20.0, step_m=1e-3, tol_m=1e-6))
+    assert_same_ranges(r, w.raycast_march(o, d, 20.0, step_m=1e-3, tol_m=1e-6))
     # Below the top: 10 - the hill's half width at that height.
     below = zs < 3.0
     half = 2.0 * np.sqrt(2.0 * np.log(3.0 / zs[below]))
@@ -533,16 +533,16 @@ def test_surface_distance_newton_matches_the_raster_search() -> None:
     for _ in range(300):
         x, y = rng.uniform(-15, 15, 2)
         p = (float(x), float(y), float(h(w, x, y) + rng.uniform(0.05, 2.5)))
-        newton = w._terrain_distance_newton(p)
+        newton = w.distances.terrain_distance_newton(p)
         assert newton is not None
-        assert newton == pytest.approx(w._terrain_distance_raster(p, math.inf), abs=1e-3)
+        assert newton == pytest.approx(w.distances.terrain_distance_raster(p, math.inf), abs=1e-3)
 
 
 def test_surface_distance_falls_back_where_not_convex() -> None:
     # High above a narrow hill the distance function is not convex: the raster search.
     w = world({"type": "gaussian_hill", "center": [0, 0], "height_m": 3, "sigma_m": 1})
     p = (0.5, 0.0, 9.0)
-    assert w._terrain_distance_newton(p) is None
+    assert w.distances.terrain_distance_newton(p) is None
     assert w.surface_distance(p) == pytest.approx(
         brute_distance(w, np.array(p), "surface", radius=6.5, spacing=0.01), abs=0.01
     )
@@ -556,4 +556,4 @@ def test_raycast_along_the_terrain_ends() -> None:
     d = np.column_stack([np.cos(a), np.sin(a), np.zeros_like(a)])
     origins = np.tile(o, (a.size, 1))
     r = w.raycast(origins, d, 12.0)
-    assert_same_ranges(r, w._raycast_march(origins, d, 12.0, step_m=0.01, tol_m=1e-5))
+    assert_same_ranges(r, w.raycast_march(origins, d, 12.0, step_m=0.01, tol_m=1e-5))

@@ -1,54 +1,47 @@
 """The companion service: MAVLink I/O around the planner, for ArduPilot and PX4.
 
-Construct and run it from Python with an injected link::
+Construct and run it from Python with an injected link (and, in tests, an injected clock)::
 
     from companion.config import load_config
     from companion.service import Service, open_link
 
     cfg = load_config(Path("config/sitl-copter.yaml"))
-    service = Service(cfg, open_link(cfg.link.connection))
+    service = Service(cfg, open_link(cfg.link.spec))
     exit_code = await service.run()          # until service.stop() or a fatal error
+    service.status()                          # a frozen snapshot: health, owner, hold, ...
 
 `main(config_path)` does all of that (logging, signals, systemd notification) for
-`companion run`. Submodules are imported lazily so that `companion.config` can use the link
-parser without pulling in the whole service.
+`companion run`. The parts, one job each, are drawn in docs/architecture.md.
 """
 
 from __future__ import annotations
 
-from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from companion.service.clock import Clock, ManualClock, MonotonicClock, SimClock
+from companion.service.entry import main
+from companion.service.flightlog import FlightLog, read_flight_log
+from companion.service.link import Link, MemoryLink, UdpInLink, UdpOutLink, memory_pair, open_link
+from companion.service.notify import SystemdNotifier
+from companion.service.service import Service, ServiceCounters
+from companion.service.status import PlannerState, SensorFreshness, ServiceStatus
 
-if TYPE_CHECKING:
-    from companion.service.link import Link, MemoryLink, memory_pair, open_link
-    from companion.service.service import Service, ServiceCounters
-
-__all__ = ["Link", "MemoryLink", "Service", "ServiceCounters", "main", "memory_pair", "open_link"]
-
-_LAZY = {
-    "Link": "companion.service.link",
-    "MemoryLink": "companion.service.link",
-    "memory_pair": "companion.service.link",
-    "open_link": "companion.service.link",
-    "Service": "companion.service.service",
-    "ServiceCounters": "companion.service.service",
-}
-
-
-def __getattr__(name: str) -> Any:
-    module = _LAZY.get(name)
-    if module is None:
-        raise AttributeError(f"module 'companion.service' has no attribute {name!r}")
-    import importlib
-
-    return getattr(importlib.import_module(module), name)
-
-
-def main(config_path: Path, connection: str | None = None, log_level: str | None = None) -> int:
-    """Run the service from a config file until SIGTERM/SIGINT; returns the exit code.
-
-    connection and log_level replace the file's link.connection and logging.level.
-    """
-    from companion.service.service import main as _main
-
-    return _main(config_path, connection, log_level)
+__all__ = [
+    "Clock",
+    "FlightLog",
+    "Link",
+    "ManualClock",
+    "MemoryLink",
+    "MonotonicClock",
+    "PlannerState",
+    "SensorFreshness",
+    "Service",
+    "ServiceCounters",
+    "ServiceStatus",
+    "SimClock",
+    "SystemdNotifier",
+    "UdpInLink",
+    "UdpOutLink",
+    "main",
+    "memory_pair",
+    "open_link",
+    "read_flight_log",
+]

@@ -26,11 +26,20 @@ from companion.service.telemetry import valid_lat_lon
 
 log = logging.getLogger(__name__)
 
-MAV_MISSION_TYPE_MISSION = 0
-MAV_MISSION_ACCEPTED = 0
-MAV_CMD_NAV_WAYPOINT = 16
-MAV_CMD_NAV_SPLINE_WAYPOINT = 82
-GLOBAL_FRAMES = {0, 3, 5, 6, 10, 11}  # GLOBAL, RELATIVE_ALT, and their _INT / terrain forms
+MAV_MISSION_TYPE_MISSION: int = mavlink2.MAV_MISSION_TYPE_MISSION
+MAV_MISSION_ACCEPTED: int = mavlink2.MAV_MISSION_ACCEPTED
+MAV_CMD_NAV_WAYPOINT: int = mavlink2.MAV_CMD_NAV_WAYPOINT
+MAV_CMD_NAV_SPLINE_WAYPOINT: int = mavlink2.MAV_CMD_NAV_SPLINE_WAYPOINT
+GLOBAL_FRAMES = frozenset(
+    {
+        mavlink2.MAV_FRAME_GLOBAL,
+        mavlink2.MAV_FRAME_GLOBAL_RELATIVE_ALT,
+        mavlink2.MAV_FRAME_GLOBAL_INT,
+        mavlink2.MAV_FRAME_GLOBAL_RELATIVE_ALT_INT,
+        mavlink2.MAV_FRAME_GLOBAL_TERRAIN_ALT,
+        mavlink2.MAV_FRAME_GLOBAL_TERRAIN_ALT_INT,
+    }
+)
 MAX_ITEMS = 1000
 
 

@@ -17,11 +17,15 @@ from companion.planner.frames import enu_to_ned, yaw_enu_to_ned
 from companion.planner.types import FloatArray
 from companion.service.codec import MAVLinkMessage, mavlink2
 
-MAV_FRAME_GLOBAL_INT = 5
-MAV_FRAME_GLOBAL_RELATIVE_ALT_INT = 6
+MAV_FRAME_GLOBAL_INT: int = mavlink2.MAV_FRAME_GLOBAL_INT
+MAV_FRAME_GLOBAL_RELATIVE_ALT_INT: int = mavlink2.MAV_FRAME_GLOBAL_RELATIVE_ALT_INT
 
-IGNORE_ACCELERATION = 64 | 128 | 256  # POSITION_TARGET_TYPEMASK_AX/AY/AZ_IGNORE
-IGNORE_YAW_RATE = 2048
+IGNORE_ACCELERATION: int = (
+    mavlink2.POSITION_TARGET_TYPEMASK_AX_IGNORE
+    | mavlink2.POSITION_TARGET_TYPEMASK_AY_IGNORE
+    | mavlink2.POSITION_TARGET_TYPEMASK_AZ_IGNORE
+)
+IGNORE_YAW_RATE: int = mavlink2.POSITION_TARGET_TYPEMASK_YAW_RATE_IGNORE
 TYPE_MASK = IGNORE_ACCELERATION | IGNORE_YAW_RATE
 """Use position, velocity and yaw; ignore acceleration and yaw rate; no FORCE_SET (512)."""
 

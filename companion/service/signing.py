@@ -16,9 +16,10 @@ from __future__ import annotations
 import json
 import logging
 import os
-import stat
-import time
 from pathlib import Path
+
+from companion.service import clock
+from companion.signing_key import SigningKeyError, load_key
 
 log = logging.getLogger(__name__)
 
@@ -30,39 +31,9 @@ SAVE_INTERVAL_S = 10.0
 RESUME_MARGIN_TICKS = int(2 * SAVE_INTERVAL_S * TICKS_PER_SECOND)
 
 
-class SigningKeyError(ValueError):
-    """The key file is missing, unreadable or not a 32-byte key."""
-
-
-def load_key(path: Path) -> bytes:
-    """The 32-byte secret from `path` (64 hex characters, or 32 raw bytes)."""
-    try:
-        raw = path.read_bytes()
-    except OSError as exc:
-        raise SigningKeyError(f"cannot read signing key file {path}: {exc.strerror}") from None
-    try:
-        mode = path.stat().st_mode
-        if mode & (stat.S_IRWXG | stat.S_IRWXO):
-            log.warning("signing key file %s is readable by others; chmod 600 it", path)
-    except OSError:
-        pass
-    text = b"".join(raw.split())
-    if len(text) == 64:
-        try:
-            return bytes.fromhex(text.decode("ascii"))
-        except (UnicodeDecodeError, ValueError):
-            pass
-    if len(raw) == 32:
-        return raw
-    raise SigningKeyError(
-        f"signing key file {path}: expected 64 hexadecimal characters or 32 raw bytes, "
-        f"found {len(raw)} bytes"
-    )
-
-
 def timestamp_now(unix_time_s: float | None = None) -> int:
     """The signing timestamp of a wall-clock time (now by default)."""
-    t = time.time() if unix_time_s is None else unix_time_s
+    t = clock.unix_time_s() if unix_time_s is None else unix_time_s
     return max(0, int((t - SIGNING_EPOCH_UNIX_S) * TICKS_PER_SECOND))
 
 
@@ -103,3 +74,6 @@ class SigningState:
             os.replace(tmp, self.path)
         except OSError as exc:
             log.warning("cannot save signing state to %s: %s", self.path, exc)
+
+
+__all__ = ["SigningKeyError", "SigningState", "load_key", "timestamp_now"]

@@ -242,6 +242,8 @@ class Telemetry:
         self.position: Position | None = None
         self.home: Home | None = None
         self.ranges: list[RangeReading | None] = [None] * len(self.sensors)
+        self._probe = np.full(len(self.sensors), math.nan)
+        """One reading at a time through the planner's detection rule."""
         self._history: list[deque[RangeReading]] = [
             deque(maxlen=max(1, self.median_samples)) for _ in range(len(self.sensors))
         ]
@@ -541,16 +543,20 @@ class Telemetry:
                 self.notices.append(f"sensor {spec.sensor_id} refused: {problem}")
             return self._reject("sensor_limits", f"sensor {spec.sensor_id}: {problem}")
         self._limit_problem.pop(index, None)
-        d = cur * 0.01
-        if cur == 0 or cur == UINT16_MAX:
-            self._count("range_none", detail=f" (sensor {spec.sensor_id}: {cur} cm)")
-            d = 0.0
-        elif d < lo:
-            # too close to measure, not "nothing": something is at most at the minimum range
+        # 65535 is MAVLink's "unknown"; 0 < d < min is "too close to measure", not "nothing":
+        # something is there, at most at the minimum range. Everything else that means
+        # "nothing detected" is the planner's rule (`SensorTable.valid`), applied here.
+        d = 0.0 if cur == UINT16_MAX else cur * 0.01
+        if 0.0 < d < lo:
             self._count("range_below_min", detail=f" (sensor {spec.sensor_id}: {cur} cm)")
-            d = lo if lo > 0 else d
-        elif d >= hi:
-            self._count("range_at_max", detail=f" (sensor {spec.sensor_id}: {cur} cm)")
+            d = lo
+        probe = self._probe
+        probe[index] = d
+        detects = bool(self.sensors.valid(probe)[index])
+        probe[index] = math.nan
+        if not detects:
+            why = "range_none" if d <= 0.0 else "range_at_max"
+            self._count(why, detail=f" (sensor {spec.sensor_id}: {cur} cm)")
             d = 0.0
         raw = RangeReading(d, int(msg.time_boot_ms), t_rx)
         self.ranges[index] = self._filtered(index, raw)

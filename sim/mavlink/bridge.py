@@ -42,7 +42,7 @@ from sim.mavlink.rangefinder import Rangefinders
 log = logging.getLogger(__name__)
 
 REQUEST_EVERY_S = 1.0
-PERIPHERAL_COMPONENT = 158
+PERIPHERAL_COMPONENT = mavlink.MAV_COMP_ID_PERIPHERAL
 
 
 class BridgeCore:

@@ -13,6 +13,9 @@ import math
 from typing import Annotated, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
+from pymavlink.dialects.v20 import ardupilotmega as mavlink
+
+from sim.mavlink.streams import STREAMED_MESSAGES
 
 Finite = Annotated[float, Field(allow_inf_nan=False)]
 NonNegative = Annotated[float, Field(ge=0, allow_inf_nan=False)]
@@ -186,8 +189,7 @@ class BridgeConfig(_Strict):
     rate_hz: Positive = 10.0
     """Wall-clock rate; at SITL speed-up N the autopilot sees rate_hz / N per simulated s."""
     system_id: Annotated[int, Field(ge=1, le=254)] = 1
-    component_id: Annotated[int, Field(ge=1, le=255)] = 158
-    """MAV_COMP_ID_PERIPHERAL by default."""
+    component_id: Annotated[int, Field(ge=1, le=255)] = mavlink.MAV_COMP_ID_PERIPHERAL
     anchor_xy: tuple[Finite, Finite] = (0.0, 0.0)
     """World x, y (ENU metres) of the autopilot's home; its z is the terrain height there."""
 
@@ -259,8 +261,6 @@ class MavlinkSimConfig(_Strict):
     @field_validator("rates_hz")
     @classmethod
     def _known_messages(cls, v: dict[str, float]) -> dict[str, float]:
-        from sim.mavlink.telemetry import STREAMED_MESSAGES
-
         unknown = sorted(set(v) - set(STREAMED_MESSAGES))
         if unknown:
             raise ValueError(f"unknown messages {unknown}; known: {sorted(STREAMED_MESSAGES)}")

@@ -105,6 +105,14 @@ class MissionServer:
             stored = [home, *stored[1:]] if stored else [home]
         return [replace(item, seq=i) for i, item in enumerate(stored)]
 
+    def load(
+        self, items: list[MissionItem], mission_type: int = mavlink.MAV_MISSION_TYPE_MISSION
+    ) -> None:
+        """Store a list as an upload would (e.g. from a mission file at start-up)."""
+        if mission_type not in MISSION_TYPES:
+            raise ValueError(f"mission type {mission_type} is not stored")
+        self._lists[mission_type] = list(items)
+
     def cancel_transfers(self) -> None:
         self._upload = None
 

@@ -137,6 +137,7 @@ class Personality:
         return int(mavlink.MAV_STATE_ACTIVE if armed else mavlink.MAV_STATE_STANDBY)
 
 
+# PX4's main modes (px4_custom_mode.h) are not in MAVLink's XML, so pymavlink has no enum for them.
 _PX4_AUTO = 4
 _ALIASES: dict[str, dict[str, str]] = {
     "ardupilot": {"HOLD": "LOITER", "POSCTL": "LOITER", "OFFBOARD": "GUIDED"},
@@ -158,33 +159,37 @@ _COPTER_MAN = _STABILIZE | _MANUAL
 B = Behaviour
 
 ARDUCOPTER_MODES = (
-    FlightMode("STABILIZE", 0, B.HOLD, _COPTER_MAN, needs_position=False),
-    FlightMode("ACRO", 1, B.HOLD, _COPTER_MAN, needs_position=False),
-    FlightMode("ALT_HOLD", 2, B.HOLD, _COPTER_MAN, needs_position=False),
-    FlightMode("AUTO", 3, B.HOLD, _COPTER_POS, armable=False),
-    FlightMode("GUIDED", 4, B.GUIDED, _COPTER_POS),
-    FlightMode("LOITER", 5, B.HOLD, _COPTER_POS),
-    FlightMode("RTL", 6, B.RTL, _COPTER_POS, armable=False),
-    FlightMode("CIRCLE", 7, B.HOLD, _COPTER_POS, armable=False),
-    FlightMode("LAND", 9, B.LAND, _COPTER_MAN, armable=False, needs_position=False),
-    FlightMode("DRIFT", 11, B.HOLD, _COPTER_MAN),
-    FlightMode("SPORT", 13, B.HOLD, _COPTER_MAN, needs_position=False),
-    FlightMode("POSHOLD", 16, B.HOLD, _COPTER_POS),
-    FlightMode("BRAKE", 17, B.HOLD, _COPTER_POS, armable=False),
-    FlightMode("SMART_RTL", 21, B.RTL, _COPTER_POS, armable=False),
+    FlightMode(
+        "STABILIZE", mavlink.COPTER_MODE_STABILIZE, B.HOLD, _COPTER_MAN, needs_position=False
+    ),
+    FlightMode("ACRO", mavlink.COPTER_MODE_ACRO, B.HOLD, _COPTER_MAN, needs_position=False),
+    FlightMode("ALT_HOLD", mavlink.COPTER_MODE_ALT_HOLD, B.HOLD, _COPTER_MAN, needs_position=False),
+    FlightMode("AUTO", mavlink.COPTER_MODE_AUTO, B.HOLD, _COPTER_POS, armable=False),
+    FlightMode("GUIDED", mavlink.COPTER_MODE_GUIDED, B.GUIDED, _COPTER_POS),
+    FlightMode("LOITER", mavlink.COPTER_MODE_LOITER, B.HOLD, _COPTER_POS),
+    FlightMode("RTL", mavlink.COPTER_MODE_RTL, B.RTL, _COPTER_POS, armable=False),
+    FlightMode("CIRCLE", mavlink.COPTER_MODE_CIRCLE, B.HOLD, _COPTER_POS, armable=False),
+    FlightMode(
+        "LAND", mavlink.COPTER_MODE_LAND, B.LAND, _COPTER_MAN, armable=False, needs_position=False
+    ),
+    FlightMode("DRIFT", mavlink.COPTER_MODE_DRIFT, B.HOLD, _COPTER_MAN),
+    FlightMode("SPORT", mavlink.COPTER_MODE_SPORT, B.HOLD, _COPTER_MAN, needs_position=False),
+    FlightMode("POSHOLD", mavlink.COPTER_MODE_POSHOLD, B.HOLD, _COPTER_POS),
+    FlightMode("BRAKE", mavlink.COPTER_MODE_BRAKE, B.HOLD, _COPTER_POS, armable=False),
+    FlightMode("SMART_RTL", mavlink.COPTER_MODE_SMART_RTL, B.RTL, _COPTER_POS, armable=False),
 )
 
 ARDUSUB_MODES = (
-    FlightMode("STABILIZE", 0, B.HOLD, _COPTER_MAN, needs_position=False),
-    FlightMode("ACRO", 1, B.HOLD, _COPTER_MAN, needs_position=False),
-    FlightMode("ALT_HOLD", 2, B.HOLD, _COPTER_MAN, needs_position=False),
-    FlightMode("AUTO", 3, B.HOLD, _COPTER_POS),
-    FlightMode("GUIDED", 4, B.GUIDED, _COPTER_POS),
-    FlightMode("CIRCLE", 7, B.HOLD, _COPTER_POS),
-    FlightMode("SURFACE", 9, B.SURFACE, _COPTER_MAN, needs_position=False),
-    FlightMode("POSHOLD", 16, B.HOLD, _COPTER_POS),
-    FlightMode("MANUAL", 19, B.HOLD, _MANUAL, needs_position=False),
-    FlightMode("SURFTRAK", 21, B.HOLD, _COPTER_MAN, needs_position=False),
+    FlightMode("STABILIZE", mavlink.SUB_MODE_STABILIZE, B.HOLD, _COPTER_MAN, needs_position=False),
+    FlightMode("ACRO", mavlink.SUB_MODE_ACRO, B.HOLD, _COPTER_MAN, needs_position=False),
+    FlightMode("ALT_HOLD", mavlink.SUB_MODE_ALT_HOLD, B.HOLD, _COPTER_MAN, needs_position=False),
+    FlightMode("AUTO", mavlink.SUB_MODE_AUTO, B.HOLD, _COPTER_POS),
+    FlightMode("GUIDED", mavlink.SUB_MODE_GUIDED, B.GUIDED, _COPTER_POS),
+    FlightMode("CIRCLE", mavlink.SUB_MODE_CIRCLE, B.HOLD, _COPTER_POS),
+    FlightMode("SURFACE", mavlink.SUB_MODE_SURFACE, B.SURFACE, _COPTER_MAN, needs_position=False),
+    FlightMode("POSHOLD", mavlink.SUB_MODE_POSHOLD, B.HOLD, _COPTER_POS),
+    FlightMode("MANUAL", mavlink.SUB_MODE_MANUAL, B.HOLD, _MANUAL, needs_position=False),
+    FlightMode("SURFTRAK", mavlink.SUB_MODE_SURFTRAK, B.HOLD, _COPTER_MAN, needs_position=False),
 )
 
 _PX4_AUTO_FLAGS = _AUTO | _STABILIZE | _GUIDED
@@ -204,11 +209,12 @@ PX4_MODES = (
     ),
 )
 
-# Versions as AUTOPILOT_VERSION.flight_sw_version: major << 24 | minor << 16 | patch << 8 | type
-# (FIRMWARE_VERSION_TYPE_DEV = 0, _OFFICIAL = 255).
-_AP_VERSION = (4 << 24) | (7 << 16) | (0 << 8) | 0
-_SUB_VERSION = (4 << 24) | (5 << 16) | (0 << 8) | 255
-_PX4_VERSION = (1 << 24) | (18 << 16) | (0 << 8) | 255
+_DEV = mavlink.FIRMWARE_VERSION_TYPE_DEV
+_OFFICIAL = mavlink.FIRMWARE_VERSION_TYPE_OFFICIAL
+# Versions as AUTOPILOT_VERSION.flight_sw_version: major << 24 | minor << 16 | patch << 8 | type.
+_AP_VERSION = (4 << 24) | (7 << 16) | (0 << 8) | _DEV
+_SUB_VERSION = (4 << 24) | (5 << 16) | (0 << 8) | _OFFICIAL
+_PX4_VERSION = (1 << 24) | (18 << 16) | (0 << 8) | _OFFICIAL
 
 # A plain client of ArduPilot SITL gets only HEARTBEAT until it asks; PX4's onboard link
 # (MAVLINK_MODE_ONBOARD) streams these on its own.

@@ -53,7 +53,7 @@ from companion.planner.frames import wrap_pi
 from companion.planner.sensors import SensorSpec
 from companion.planner.types import FloatArray, VehicleState
 from sim.mavlink import telemetry as tm
-from sim.mavlink.autopilot import ACCEPTED, FAILED, UNSUPPORTED, Autopilot
+from sim.mavlink.autopilot import ACCEPTED, FAILED, FORCE_MAGIC, UNSUPPORTED, Autopilot
 from sim.mavlink.clock import Pacer
 from sim.mavlink.codec import Codec
 from sim.mavlink.config import MavlinkSimConfig, parse_host_port
@@ -62,7 +62,8 @@ from sim.mavlink.mission import MissionItem, MissionServer
 from sim.mavlink.models import RangeWorld, VehicleFactory, VehicleModel
 from sim.mavlink.personality import personality
 from sim.mavlink.rangefinder import Rangefinders
-from sim.mavlink.setpoints import Decision
+from sim.mavlink.setpoints import FRAMES_AMSL, Decision
+from sim.mavlink.streams import NAME_OF_ID, STREAMED_MESSAGES
 
 log = logging.getLogger(__name__)
 
@@ -70,6 +71,8 @@ COMMAND_REBOOT_S = 1.0
 """Silence after MAV_CMD_PREFLIGHT_REBOOT_SHUTDOWN."""
 
 Address = tuple[str, int]
+_CommandHandler = Callable[[list[float], int | None, float], int]
+"""A command's handler: (param1..param7, COMMAND_INT frame or None, now_s) -> MAV_RESULT."""
 
 # MAV_DATA_STREAM groups of REQUEST_DATA_STREAM (ArduPilot's legacy stream rates).
 _DATA_STREAMS: dict[int, tuple[str, ...]] = {
@@ -213,6 +216,7 @@ class SimServer:
         self._reboot_requested = False
         self._silent_until = -math.inf
         self._after_ack: list[Any] = []
+        self._commands = self._command_table()
         self._record_truth()
 
     @classmethod
@@ -423,7 +427,7 @@ class SimServer:
         mav = self.codec.mav
         out = self._send if send is None else send
         ap = self.autopilot
-        name = tm.NAME_OF_ID[msg_id]
+        name = NAME_OF_ID[msg_id]
         if name == "HEARTBEAT":
             out(tm.heartbeat_message(mav, self.personality, ap.mode, ap.armed, ap.failsafe))
         elif name == "SYS_STATUS":
@@ -565,7 +569,7 @@ class SimServer:
             hz = float(msg.req_message_rate) if msg.start_stop else 0.0
             for name in _DATA_STREAMS.get(int(msg.req_stream_id), ()):
                 interval_us = 1e6 / hz if hz > 0 else -1
-                self.scheduler.set_interval_us(tm.STREAMED_MESSAGES[name], interval_us, now)
+                self.scheduler.set_interval_us(STREAMED_MESSAGES[name], interval_us, now)
 
     def _ack(self, msg: Any, command: int, result: int) -> None:
         self._send(
@@ -590,55 +594,85 @@ class SimServer:
         self._after_ack.clear()
 
     def _command_result(self, cmd: int, p: list[float], frame: int | None, now: float) -> int:
-        ap = self.autopilot
-        state = self.state
-        pers = self.personality
-        if cmd == mavlink.MAV_CMD_COMPONENT_ARM_DISARM:
-            force = abs(p[1] - 21196.0) < 0.5
-            return ap.arm(now, state, force) if p[0] > 0.5 else ap.disarm(now, force)
-        if cmd == mavlink.MAV_CMD_DO_SET_MODE:
-            mode = pers.mode_from_command(p[0], p[1], p[2])
-            if mode is None:
-                return pers.result_refused
-            return ap.set_mode(mode, now, state)
-        if cmd == mavlink.MAV_CMD_NAV_TAKEOFF:
-            # COMMAND_LONG: ArduPilot reads param7 above home, PX4 as AMSL; COMMAND_INT: frame.
-            if frame is None:
-                amsl = pers.family == "px4"
-            else:
-                amsl = frame in (mavlink.MAV_FRAME_GLOBAL, mavlink.MAV_FRAME_GLOBAL_INT)
-            return ap.takeoff(p[6], amsl, now, state)
-        if cmd in (mavlink.MAV_CMD_NAV_LAND, mavlink.MAV_CMD_NAV_RETURN_TO_LAUNCH):
-            name = pers.land_mode if cmd == mavlink.MAV_CMD_NAV_LAND else pers.rtl_mode
-            if name is None:
-                return UNSUPPORTED
-            return ap.set_mode(pers.mode(name), now, state)
-        if cmd == mavlink.MAV_CMD_DO_SET_HOME:
-            return ap.set_home(p[0] > 0.5, p[4], p[5], p[6], state)
-        if cmd == mavlink.MAV_CMD_SET_MESSAGE_INTERVAL:
-            ok = self.scheduler.set_interval_us(int(p[0]), p[1], now)
-            if ok:
-                return ACCEPTED
-            # ArduCopter SITL answers DENIED for a message it cannot stream (seen, id 60000)
-            return FAILED if pers.family == "px4" else int(mavlink.MAV_RESULT_DENIED)
-        if cmd == mavlink.MAV_CMD_GET_MESSAGE_INTERVAL:
-            msg_id = int(p[0])
-            self._send(
-                self.codec.mav.message_interval_encode(msg_id, self.scheduler.interval_us(msg_id))
-            )
+        """The COMMAND_ACK result of one command; p: param1..param7 (COMMAND_INT's x, y as
+        degrees); frame: COMMAND_INT's frame, None for COMMAND_LONG."""
+        handler = self._commands.get(cmd)
+        if handler is None:
+            return UNSUPPORTED
+        return handler(p, frame, now)
+
+    def _command_table(self) -> dict[int, _CommandHandler]:
+        return {
+            mavlink.MAV_CMD_COMPONENT_ARM_DISARM: self._cmd_arm_disarm,
+            mavlink.MAV_CMD_DO_SET_MODE: self._cmd_set_mode,
+            mavlink.MAV_CMD_NAV_TAKEOFF: self._cmd_takeoff,
+            mavlink.MAV_CMD_NAV_LAND: self._cmd_land,
+            mavlink.MAV_CMD_NAV_RETURN_TO_LAUNCH: self._cmd_return_to_launch,
+            mavlink.MAV_CMD_DO_SET_HOME: self._cmd_set_home,
+            mavlink.MAV_CMD_SET_MESSAGE_INTERVAL: self._cmd_set_message_interval,
+            mavlink.MAV_CMD_GET_MESSAGE_INTERVAL: self._cmd_get_message_interval,
+            mavlink.MAV_CMD_REQUEST_MESSAGE: self._cmd_request_message,
+            mavlink.MAV_CMD_REQUEST_AUTOPILOT_CAPABILITIES: self._cmd_request_capabilities,
+            mavlink.MAV_CMD_PREFLIGHT_REBOOT_SHUTDOWN: self._cmd_reboot,
+        }
+
+    def _cmd_arm_disarm(self, p: list[float], frame: int | None, now: float) -> int:
+        force = abs(p[1] - FORCE_MAGIC) < 0.5
+        if p[0] > 0.5:
+            return self.autopilot.arm(now, self.state, force)
+        return self.autopilot.disarm(now, force)
+
+    def _cmd_set_mode(self, p: list[float], frame: int | None, now: float) -> int:
+        mode = self.personality.mode_from_command(p[0], p[1], p[2])
+        if mode is None:
+            return self.personality.result_refused
+        return self.autopilot.set_mode(mode, now, self.state)
+
+    def _cmd_takeoff(self, p: list[float], frame: int | None, now: float) -> int:
+        # COMMAND_LONG: ArduPilot reads param7 above home, PX4 as AMSL; COMMAND_INT: frame.
+        amsl = self.personality.family == "px4" if frame is None else frame in FRAMES_AMSL
+        return self.autopilot.takeoff(p[6], amsl, now, self.state)
+
+    def _cmd_land(self, p: list[float], frame: int | None, now: float) -> int:
+        return self._to_mode(self.personality.land_mode, now)
+
+    def _cmd_return_to_launch(self, p: list[float], frame: int | None, now: float) -> int:
+        return self._to_mode(self.personality.rtl_mode, now)
+
+    def _to_mode(self, name: str | None, now: float) -> int:
+        if name is None:
+            return UNSUPPORTED
+        return self.autopilot.set_mode(self.personality.mode(name), now, self.state)
+
+    def _cmd_set_home(self, p: list[float], frame: int | None, now: float) -> int:
+        return self.autopilot.set_home(p[0] > 0.5, p[4], p[5], p[6], self.state)
+
+    def _cmd_set_message_interval(self, p: list[float], frame: int | None, now: float) -> int:
+        if self.scheduler.set_interval_us(int(p[0]), p[1], now):
             return ACCEPTED
-        if cmd == mavlink.MAV_CMD_REQUEST_MESSAGE:
-            return self._request_message(int(p[0]))
-        if cmd == mavlink.MAV_CMD_REQUEST_AUTOPILOT_CAPABILITIES:
-            return self._request_message(mavlink.MAVLINK_MSG_ID_AUTOPILOT_VERSION)
-        if cmd == mavlink.MAV_CMD_PREFLIGHT_REBOOT_SHUTDOWN:
-            if int(p[0]) != 1:
-                return UNSUPPORTED
-            if ap.armed:
-                return pers.result_refused
-            self._reboot_requested = True  # after this tick's messages, once acked
-            return ACCEPTED
-        return UNSUPPORTED
+        # ArduCopter SITL answers DENIED for a message it cannot stream (seen, id 60000)
+        return FAILED if self.personality.family == "px4" else int(mavlink.MAV_RESULT_DENIED)
+
+    def _cmd_get_message_interval(self, p: list[float], frame: int | None, now: float) -> int:
+        msg_id = int(p[0])
+        self._send(
+            self.codec.mav.message_interval_encode(msg_id, self.scheduler.interval_us(msg_id))
+        )
+        return ACCEPTED
+
+    def _cmd_request_message(self, p: list[float], frame: int | None, now: float) -> int:
+        return self._request_message(int(p[0]))
+
+    def _cmd_request_capabilities(self, p: list[float], frame: int | None, now: float) -> int:
+        return self._request_message(mavlink.MAVLINK_MSG_ID_AUTOPILOT_VERSION)
+
+    def _cmd_reboot(self, p: list[float], frame: int | None, now: float) -> int:
+        if int(p[0]) != 1:
+            return UNSUPPORTED
+        if self.autopilot.armed:
+            return self.personality.result_refused
+        self._reboot_requested = True  # after this tick's messages, once acked
+        return ACCEPTED
 
     def _request_message(self, msg_id: int) -> int:
         if msg_id == mavlink.MAVLINK_MSG_ID_AUTOPILOT_VERSION:
@@ -648,7 +682,7 @@ class SimServer:
                 )
             )
             return ACCEPTED
-        if msg_id not in tm.NAME_OF_ID:
+        if msg_id not in NAME_OF_ID:
             return FAILED
         self._send_telemetry(msg_id, self.snapshot(), self._after_ack.append)
         return ACCEPTED

@@ -19,23 +19,7 @@ from companion.geo import LocalFrame
 from companion.planner.frames import attitude_enu_to_ned, enu_to_ned
 from companion.planner.types import FloatArray
 from sim.mavlink.personality import FlightMode, Personality
-
-STREAMED_MESSAGES: dict[str, int] = {
-    "HEARTBEAT": mavlink.MAVLINK_MSG_ID_HEARTBEAT,
-    "SYS_STATUS": mavlink.MAVLINK_MSG_ID_SYS_STATUS,
-    "SYSTEM_TIME": mavlink.MAVLINK_MSG_ID_SYSTEM_TIME,
-    "ATTITUDE": mavlink.MAVLINK_MSG_ID_ATTITUDE,
-    "GLOBAL_POSITION_INT": mavlink.MAVLINK_MSG_ID_GLOBAL_POSITION_INT,
-    "LOCAL_POSITION_NED": mavlink.MAVLINK_MSG_ID_LOCAL_POSITION_NED,
-    "HOME_POSITION": mavlink.MAVLINK_MSG_ID_HOME_POSITION,
-    "DISTANCE_SENSOR": mavlink.MAVLINK_MSG_ID_DISTANCE_SENSOR,
-    "EXTENDED_SYS_STATE": mavlink.MAVLINK_MSG_ID_EXTENDED_SYS_STATE,
-    "TIMESYNC": mavlink.MAVLINK_MSG_ID_TIMESYNC,
-}
-"""Messages the simulator can stream, by name (also the keys of `rates_hz`)."""
-NAME_OF_ID = {v: k for k, v in STREAMED_MESSAGES.items()}
-REQUESTABLE = {*STREAMED_MESSAGES.values(), mavlink.MAVLINK_MSG_ID_AUTOPILOT_VERSION}
-"""Messages MAV_CMD_REQUEST_MESSAGE can ask for once."""
+from sim.mavlink.streams import NAME_OF_ID, STREAMED_MESSAGES
 
 _EPS = 1e-9
 

@@ -16,18 +16,50 @@ switch, no global state touched. Frame: local ENU metres, angles radians, time s
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from companion.planner.params import PlannerParams
 from companion.planner.route import Route
 from sim.world import World
 
-__all__ = ["HEIGHT_BAND_M", "write_figures"]
+__all__ = ["HEIGHT_BAND_M", "PlotParams", "write_figures"]
 
 HEIGHT_BAND_M = 0.15
 """The paper's bound on |H - H_d| (Fig. 7d), metres."""
+
+
+@dataclass(frozen=True)
+class PlotParams:
+    """The planner parameters the figures draw: H_d and D_min (m), phi_max (rad), v_d (m/s)
+    and eq. (7)'s side threshold (rad), taken from the planner's own function."""
+
+    h_d_m: float
+    d_min_m: float
+    phi_max_rad: float
+    v_d_mps: float
+    side_threshold_rad: float
+
+    def __post_init__(self) -> None:
+        for name in ("h_d_m", "d_min_m", "phi_max_rad", "v_d_mps", "side_threshold_rad"):
+            value = getattr(self, name)
+            if not (isinstance(value, int | float) and math.isfinite(value) and value > 0.0):
+                raise ValueError(f"{name} must be a positive finite number, got {value!r}")
+
+    @classmethod
+    def from_planner(cls, params: PlannerParams) -> PlotParams:
+        """The figures' parameters of a planner configuration (eq. (7) as the planner has it)."""
+        return cls(
+            h_d_m=params.h_d_m,
+            d_min_m=params.d_min_m,
+            phi_max_rad=params.phi_max_rad,
+            v_d_mps=params.v_d_mps,
+            side_threshold_rad=params.side_threshold_rad,
+        )
+
 
 _DPI = 110
 _MAX_EVENT_LINES = 200
@@ -321,14 +353,13 @@ def _fig6(
     world: World,
     route: Route,
     trace: dict[str, np.ndarray],
-    params: dict[str, float],
+    params: PlotParams,
     memory_xy: np.ndarray | None,
     title: str,
 ) -> Path:
+    """Fig. 6: (a) plan view, (b) height along the path, (c) 3-D view."""
     from matplotlib import colors
-    from matplotlib.patches import Patch, Polygon
 
-    h_d = float(params["h_d_m"])
     x = np.asarray(trace["x"], dtype=np.float64)
     y = np.asarray(trace["y"], dtype=np.float64)
     z = np.asarray(trace["z"], dtype=np.float64)
@@ -340,9 +371,15 @@ def _fig6(
     zmin, zmax = float(Z.min()), float(Z.max())
     if zmax - zmin < 1e-6:
         zmax = zmin + 1.0
-    norm = colors.Normalize(vmin=zmin, vmax=zmax)
-    cmap = colors.LinearSegmentedColormap.from_list(
-        "terrain_soft", ["#f3efe2", "#d6c9a0", "#a88c5c", "#6e5537"]
+    view = _TerrainView(
+        ext=ext,
+        wide=wide,
+        zmin=zmin,
+        zmax=zmax,
+        norm=colors.Normalize(vmin=zmin, vmax=zmax),
+        cmap=colors.LinearSegmentedColormap.from_list(
+            "terrain_soft", ["#f3efe2", "#d6c9a0", "#a88c5c", "#6e5537"]
+        ),
     )
 
     fig = Figure(figsize=_FIGSIZE, dpi=_DPI, layout="constrained")
@@ -357,7 +394,77 @@ def _fig6(
         ax_b = fig.add_subplot(gs[0, 1])
         ax_c = fig.add_subplot(gs[1, 1], projection="3d", computed_zorder=False)
 
-    # (a) plan view ------------------------------------------------------------------
+    labels = _plan_view(fig, ax_a, world, view, (X, Y, Z), route_xy, base, x, y, trace, mem, params)
+    _height_profile(ax_b, world, route_xy, x, y, z, params)
+    data_artists = _view_3d(ax_c, world, view, route_xy, base, x, y, z)
+
+    head = f"{title}: " if title else ""
+    fig.suptitle(f"{head}trajectory (cf. paper Fig. 6)", fontsize=13)
+    _place_plan_labels(
+        fig,
+        ax_a,
+        labels.obstacle_labels,
+        labels.handles,
+        lines=np.concatenate([np.column_stack([x, y]), route_xy]),
+        marks=np.concatenate(labels.marks),
+        wide=wide,
+    )
+    _fill_cell_3d(fig, ax_c, data_artists)
+    fig.savefig(path, dpi=_DPI)
+    return path
+
+
+@dataclass(frozen=True)
+class _TerrainView:
+    """What the plan view and the 3-D view share: the plotted xy extent (m), the layout, the
+    height range (m) and the terrain's colour map."""
+
+    ext: tuple[float, float, float, float]
+    wide: bool
+    zmin: float
+    zmax: float
+    norm: Any
+    cmap: Any
+
+
+@dataclass
+class _PlanLabels:
+    """What the plan view leaves for the label placement: legend handles, obstacle labels
+    with their outlines, and the points labels must not cover."""
+
+    handles: list[Any]
+    obstacle_labels: list[tuple[str, np.ndarray]]
+    marks: list[np.ndarray]
+
+
+def _plan_view(
+    fig: Any,
+    ax_a: Any,
+    world: World,
+    view: _TerrainView,
+    grid: tuple[np.ndarray, np.ndarray, np.ndarray],
+    route_xy: np.ndarray,
+    base: np.ndarray,
+    x: np.ndarray,
+    y: np.ndarray,
+    trace: dict[str, np.ndarray],
+    mem: np.ndarray | None,
+    params: PlotParams,
+) -> _PlanLabels:
+    """Fig. 6a: shaded terrain, features, original route, flown path, decisions, remembered
+    obstacle points and the closest approach with its D_min ring."""
+    from matplotlib import colors
+    from matplotlib.patches import Patch, Polygon
+
+    X, Y, Z = grid
+    ext, wide, zmin, zmax, norm, cmap = (
+        view.ext,
+        view.wide,
+        view.zmin,
+        view.zmax,
+        view.norm,
+        view.cmap,
+    )
     ls = colors.LightSource(azdeg=315, altdeg=45)
     dx = (ext[1] - ext[0]) / max(X.shape[1] - 1, 1)
     rgb = ls.shade(Z, cmap=cmap, norm=norm, blend_mode="soft", vert_exag=1.0, dx=dx, dy=dx)
@@ -472,7 +579,7 @@ def _fig6(
     if np.isfinite(clearance).any():
         i = int(np.nanargmin(clearance))
         closest_xy = np.array([x[i], y[i]])
-        d_min = float(params["d_min_m"])
+        d_min = params.d_min_m
         ring = np.linspace(0.0, 2.0 * np.pi, 73)
         handles.append(
             ax_a.plot(
@@ -506,8 +613,21 @@ def _fig6(
     marks = [base, np.array([[x[0], y[0]]]) if len(x) else np.empty((0, 2))]
     if closest_xy is not None:
         marks.append(closest_xy[None, :])
+    return _PlanLabels(handles, obstacle_labels, marks)
 
-    # (b) z along the path ---------------------------------------------------------------
+
+def _height_profile(
+    ax_b: Any,
+    world: World,
+    route_xy: np.ndarray,
+    x: np.ndarray,
+    y: np.ndarray,
+    z: np.ndarray,
+    params: PlotParams,
+) -> None:
+    """Fig. 6b: z along the flown path against horizontal distance travelled, with the
+    terrain under the vehicle, the H_d band and the terrain under the original route."""
+    h_d = params.h_d_m
     s = _path_length(x, y)
     ground = np.asarray(world.height(x, y), dtype=np.float64)
     floor = min(float(ground.min()), float(z.min())) - 0.5 if len(z) else 0.0
@@ -549,7 +669,26 @@ def _fig6(
     ax_b.legend(loc="best", fontsize=8, framealpha=0.85)
     ax_b.grid(alpha=0.3)
 
-    # (c) 3-D view -----------------------------------------------------------------------
+
+def _view_3d(
+    ax_c: Any,
+    world: World,
+    view: _TerrainView,
+    route_xy: np.ndarray,
+    base: np.ndarray,
+    x: np.ndarray,
+    y: np.ndarray,
+    z: np.ndarray,
+) -> list[Any]:
+    """Fig. 6c: the terrain surface with the flown trajectory; returns the data artists."""
+    ext, wide, zmin, zmax, norm, cmap = (
+        view.ext,
+        view.wide,
+        view.zmin,
+        view.zmax,
+        view.norm,
+        view.cmap,
+    )
     X3, Y3, Z3 = _grid(world, ext, 140)
     data_artists = [
         ax_c.plot_surface(
@@ -612,21 +751,7 @@ def _fig6(
         else "(c) 3-D view, heights exaggerated\nblack: flown trajectory, dashed: original route",
         fontsize=11,
     )
-
-    head = f"{title}: " if title else ""
-    fig.suptitle(f"{head}trajectory (cf. paper Fig. 6)", fontsize=13)
-    _place_plan_labels(
-        fig,
-        ax_a,
-        obstacle_labels,
-        handles,
-        lines=np.concatenate([np.column_stack([x, y]), route_xy]),
-        marks=np.concatenate(marks),
-        wide=wide,
-    )
-    _fill_cell_3d(fig, ax_c, data_artists)
-    fig.savefig(path, dpi=_DPI)
-    return path
+    return data_artists
 
 
 def _axis_extent(fig: Any, ax: Any) -> Any:
@@ -693,18 +818,13 @@ def _fig7(
     Figure: Any,
     path: Path,
     trace: dict[str, np.ndarray],
-    params: dict[str, float],
+    params: PlotParams,
     phi_star: np.ndarray | None,
     thresholds: np.ndarray | None,
     events: list[tuple[float, str]] | None,
     title: str,
 ) -> Path:
-    from matplotlib.patches import Patch
-
-    h_d = float(params["h_d_m"])
-    d_min = float(params["d_min_m"])
-    phi_max = float(params["phi_max_rad"])
-    v_d = float(params["v_d_mps"])
+    """Fig. 7 against time: (a) phi*, (b) distances, (c) pitch, (d) H, (e) speed of X_d."""
     t = np.asarray(trace["t"], dtype=np.float64)
     decision = np.asarray(trace["decision"]).astype(str)
 
@@ -719,7 +839,34 @@ def _fig7(
     for ax in axes[1:]:
         _shade_decisions(ax, t, decision, ("horizontal", "blocked"), strength=0.45)
 
-    # (a) phi* -----------------------------------------------------------------------------
+    _steepness_panel(ax_a, t, trace, params, phi_star, thresholds, has_events=bool(events))
+    _event_lines(list(axes), events, t0, t_end)
+    _steepness_legend(ax_a, decision)
+    _distance_panel(ax_b, t, trace, params)
+    _pitch_panel(ax_c, t, trace, params)
+    _height_panel(ax_d, t, trace, params)
+    _speed_panel(ax_e, t, trace, params)
+
+    for ax in axes:
+        ax.grid(alpha=0.3)
+        ax.set_xlim(t0, t_end)
+    head = f"{title}: " if title else ""
+    fig.suptitle(f"{head}planner signals against time (cf. paper Fig. 7)", fontsize=13)
+    fig.savefig(path, dpi=_DPI)
+    return path
+
+
+def _steepness_panel(
+    ax_a: Any,
+    t: np.ndarray,
+    trace: dict[str, np.ndarray],
+    params: PlotParams,
+    phi_star: np.ndarray | None,
+    thresholds: np.ndarray | None,
+    has_events: bool,
+) -> None:
+    """Fig. 7a: phi* per sensor and its maximum, with the thresholds of eq. (7)."""
+    phi_max = params.phi_max_rad
     if phi_star is not None and phi_star.ndim == 2 and len(phi_star) == len(t):
         for j in range(phi_star.shape[1]):
             ax_a.plot(
@@ -731,7 +878,7 @@ def _fig7(
                 label="φ*ᵢ per sensor" if j == 0 else None,
             )
     ax_a.plot(t, trace["phi_star_max"], color="black", lw=1.3, zorder=3, label="max φ*ᵢ")
-    side_thr = min(math.atan2(h_d, d_min), phi_max)
+    side_thr = params.side_threshold_rad  # eq. (7), the planner's own function
     thr_values = (
         sorted({round(float(v), 6) for v in np.asarray(thresholds).ravel()})
         if thresholds is not None and np.size(thresholds)
@@ -767,11 +914,18 @@ def _fig7(
         if min(abs(v - phi_max), abs(v - side_thr)) > 1e-6:
             ax_a.axhline(v, color="0.4", ls=":", lw=1.0, zorder=3, label=f"threshold {v:.3g} rad")
     ymax_a = max(float(np.max(trace["phi_star_max"])) if len(t) else 0.0, phi_max) * 1.15
-    ax_a.set_ylim(-0.05 * ymax_a, ymax_a * (1.35 if events else 1.0))
+    ax_a.set_ylim(-0.05 * ymax_a, ymax_a * (1.35 if has_events else 1.0))
     ax_a.set_ylabel("φ* (rad)")
     ax_a.set_title(
         "(a) steepness φ* of what the range sensors see, and the decision", fontsize=10, loc="left"
     )
+
+
+def _event_lines(
+    axes: list[Any], events: list[tuple[float, str]] | None, t0: float, t_end: float
+) -> None:
+    """The planner's events as vertical lines on every panel, labelled on the first."""
+    ax_a = axes[0]
     marks = _event_marks(events, min_gap_s=0.06 * max(t_end - t0, 1e-9))
     if len(marks) > _MAX_EVENT_LINES:  # a flood of events: only the labelled ones
         marks = [m for m in marks if m[1] is not None]
@@ -793,13 +947,24 @@ def _fig7(
                 bbox={"boxstyle": "round,pad=0.15", "fc": "white", "ec": "none", "alpha": 0.7},
                 zorder=6,
             )
+
+
+def _steepness_legend(ax_a: Any, decision: np.ndarray) -> None:
+    """Fig. 7a's legend, beside it: its lines and the decisions shaded behind them."""
+    from matplotlib.patches import Patch
+
     h, lab = ax_a.get_legend_handles_labels()
     present = [d for d in ("vertical", "horizontal", "blocked") if np.any(decision == d)]
     h += [Patch(color=_DECISION_COLOURS[d], label=_DECISION_LABELS[d]) for d in present]
     lab += [_DECISION_LABELS[d] for d in present]
     ax_a.legend(h, lab, loc="center left", bbox_to_anchor=(1.005, 0.5), fontsize=8)
 
-    # (b) min d_i and the true clearance ---------------------------------------------------
+
+def _distance_panel(
+    ax_b: Any, t: np.ndarray, trace: dict[str, np.ndarray], params: PlotParams
+) -> None:
+    """Fig. 7b: min d_i over the obstacle sensors and the true clearance, with D_min."""
+    d_min = params.d_min_m
     # Nothing within range is recorded as 0 (or NaN): drawn as a gap, not as a distance.
     min_range = _detected(trace["min_range"])
     clearance = np.asarray(trace["clearance"], dtype=np.float64)
@@ -843,7 +1008,12 @@ def _fig7(
     )
     ax_b.legend(loc="center left", bbox_to_anchor=(1.005, 0.5), fontsize=8)
 
-    # (c) phi_d and pitch --------------------------------------------------------------------
+
+def _pitch_panel(
+    ax_c: Any, t: np.ndarray, trace: dict[str, np.ndarray], params: PlotParams
+) -> None:
+    """Fig. 7c: desired pitch phi_d and the vehicle's pitch, with +-phi_max."""
+    phi_max = params.phi_max_rad
     ax_c.plot(t, trace["phi_d"], color="black", lw=1.2, label="φ_d (desired pitch)")
     pitch = np.asarray(trace["pitch"], dtype=np.float64)
     ax_c.plot(
@@ -889,7 +1059,12 @@ def _fig7(
     ax_c.set_title("(c) desired pitch φ_d and vehicle pitch", fontsize=10, loc="left")
     ax_c.legend(loc="center left", bbox_to_anchor=(1.005, 0.5), fontsize=8)
 
-    # (d) H ------------------------------------------------------------------------------------
+
+def _height_panel(
+    ax_d: Any, t: np.ndarray, trace: dict[str, np.ndarray], params: PlotParams
+) -> None:
+    """Fig. 7d: height H above the surface, with H_d and its +-0.15 m band."""
+    h_d = params.h_d_m
     height = np.asarray(trace["height"], dtype=np.float64)
     ax_d.axhspan(
         h_d - HEIGHT_BAND_M,
@@ -933,7 +1108,12 @@ def _fig7(
     ax_d.set_title("(d) height H above the surface", fontsize=10, loc="left")
     ax_d.legend(loc="center left", bbox_to_anchor=(1.005, 0.5), fontsize=8)
 
-    # (e) speed of X_d -------------------------------------------------------------------------
+
+def _speed_panel(
+    ax_e: Any, t: np.ndarray, trace: dict[str, np.ndarray], params: PlotParams
+) -> None:
+    """Fig. 7e: speed of the reference point X_d, with the reference speed and v_d."""
+    v_d = params.v_d_mps
     speed = np.asarray(trace["speed_xd"], dtype=np.float64)
     speed_err = np.abs(speed - np.asarray(trace["speed_ref"], dtype=np.float64))
     ax_e.plot(
@@ -952,21 +1132,13 @@ def _fig7(
     ax_e.set_title("(e) speed of the reference point X_d", fontsize=10, loc="left")
     ax_e.legend(loc="center left", bbox_to_anchor=(1.005, 0.5), fontsize=8)
 
-    for ax in axes:
-        ax.grid(alpha=0.3)
-        ax.set_xlim(t0, t_end)
-    head = f"{title}: " if title else ""
-    fig.suptitle(f"{head}planner signals against time (cf. paper Fig. 7)", fontsize=13)
-    fig.savefig(path, dpi=_DPI)
-    return path
-
 
 def write_figures(
     out_dir: Path,
     world: World,
     route: Route,
     trace: dict[str, np.ndarray],
-    params: dict[str, float],
+    params: PlotParams,
     phi_star: np.ndarray | None = None,
     thresholds: np.ndarray | None = None,
     memory_xy: np.ndarray | None = None,
@@ -975,15 +1147,14 @@ def write_figures(
 ) -> list[Path]:
     """Write out_dir/fig6.png and out_dir/fig7.png of one run; return their paths.
 
-    trace: columns of `sim.closed_loop.TRACE_COLUMNS` (one row per cycle); params: h_d_m,
-    d_min_m, phi_max_rad, v_d_mps; phi_star (cycles, obstacle sensors) and thresholds
-    (obstacle sensors) in radians; memory_xy (n, 2) remembered obstacle points; events
-    (t, text). RuntimeError if matplotlib (the `plots` extra) is not installed.
+    trace: columns of `harness.closed_loop.TRACE_COLUMNS` (one row per cycle); phi_star
+    (cycles, obstacle sensors) and thresholds (obstacle sensors) in radians; memory_xy (n, 2)
+    remembered obstacle points; events (t, text). RuntimeError if matplotlib (the `plots`
+    extra) is not installed.
     """
+    if not isinstance(params, PlotParams):
+        raise TypeError(f"params must be a PlotParams, got {type(params).__name__}")
     Figure = _import_matplotlib()
-    missing = [k for k in ("h_d_m", "d_min_m", "phi_max_rad", "v_d_mps") if k not in params]
-    if missing:
-        raise ValueError(f"params lacks {', '.join(missing)}")
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     return [

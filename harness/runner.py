@@ -12,8 +12,8 @@ import sys
 from pathlib import Path
 from typing import Any, TextIO
 
-from sim import metrics as metrics_mod
-from sim.closed_loop import RunResult, run, write_trace
+from harness import metrics as metrics_mod
+from harness.closed_loop import RunResult, run, write_trace
 from sim.scenario import Scenario, load_scenario
 from sim.world import World
 
@@ -44,20 +44,14 @@ def write_outputs(
         "".join(f"{t:9.2f}  {text}\n" for t, text in result.events), encoding="utf-8"
     )
     if plots:
-        from sim.plots import write_figures
+        from harness.plots import PlotParams, write_figures
 
-        p = scenario.planner
         written += write_figures(
             out_dir,
             world,
             scenario.route_obj(),
             result.trace,
-            {
-                "h_d_m": p.h_d_m,
-                "d_min_m": p.d_min_m,
-                "phi_max_rad": p.phi_max_rad,
-                "v_d_mps": p.v_d_mps,
-            },
+            PlotParams.from_planner(scenario.params()),
             phi_star=result.phi_star,
             thresholds=result.thresholds,
             memory_xy=result.memory_xy,

@@ -1,7 +1,7 @@
 """`companion sweep`: fly many seeded random worlds and measure what the targets name.
 
 One task = one seed x sensor layout x vehicle model x sensor fault: `run_task` generates the
-world (`sim.worldgen`), flies it in process (`sim.closed_loop.run`) and returns one flat
+world (`sim.worldgen`), flies it in process (`harness.closed_loop.run`) and returns one flat
 record (RECORD_FIELDS). The same function runs in a local process pool (default) or on a Ray
 cluster (`--ray`); everything in a record except the wall-clock fields (TIMING_FIELDS) is a
 function of the task alone, so the same seeds give the same records on either.
@@ -39,7 +39,7 @@ import numpy as np
 import yaml
 
 from companion.tuning import SensorConfig
-from sim.closed_loop import STALL_BOX_M
+from harness.closed_loop import STALL_BOX_M
 from sim.mavlink.config import SensorFaultConfig
 from sim.mavlink.faults import SensorFaults
 from sim.vehicle import VehicleModelConfig
@@ -152,8 +152,8 @@ def run_task(task: Task) -> dict[str, Any]:
     A crash of the planner or the simulator is a record with outcome "error" and the
     message, not an exception: one bad world does not stop a sweep.
     """
-    from sim import metrics as metrics_mod
-    from sim.closed_loop import run
+    from harness import metrics as metrics_mod
+    from harness.closed_loop import run
     from sim.world import World
 
     wall0 = time.perf_counter()
@@ -223,7 +223,7 @@ def run_task(task: Task) -> dict[str, Any]:
 
 def _write_failure_outputs(out: Path, sc: Any, world: Any, result: Any, m: dict[str, Any]) -> str:
     """Trace, events, metrics and (with matplotlib) figures of a failure; '' or the problem."""
-    from sim.runner import write_outputs
+    from harness.runner import write_outputs
 
     try:
         import matplotlib  # noqa: F401
