@@ -2,7 +2,6 @@
 
     python -m sim serve SCENARIO.yaml [--personality px4] [--port 14580] [--speedup 5]
     python -m sim bridge SCENARIO.yaml --connect udpin:127.0.0.1:14550
-    python -m sim sitl SCENARIO.yaml [--sensors-to autopilot] [--instance 3] --out out/sitl
 
 Options given here override the scenario's `mavlink:` section. See docs/simulator.md.
 """
@@ -90,29 +89,6 @@ def _parser() -> argparse.ArgumentParser:
     bridge.add_argument("--duration", type=float, metavar="S", help="stop after S wall seconds")
     bridge.add_argument("-v", "--verbose", action="store_true", help="log more")
 
-    sitl = sub.add_parser(
-        "sitl",
-        help="fly a scenario with the companion service on the real ArduCopter SITL",
-        description="Start ../shared/sitl/arducopter-sitl, the sensor bridge and the service "
-        "(auto start), fly the scenario's route and print the metrics, the truth being the "
-        "pose SITL reports.",
-    )
-    sitl.add_argument("scenario", type=Path, help="scenario YAML file")
-    sitl.add_argument(
-        "--sensors-to",
-        choices=["companion", "autopilot"],
-        default="companion",
-        help="bridge sends DISTANCE_SENSOR to the companion (default) or feeds SITL's MAVLink "
-        "rangefinders/proximity, the companion reading SITL's re-reports",
-    )
-    sitl.add_argument(
-        "--sensors", type=Path, metavar="FILE", help="sensor table replacing the scenario's"
-    )
-    sitl.add_argument("--instance", type=int, default=0, help="SITL instance (TCP 5762+10*I)")
-    sitl.add_argument("--speedup", type=float, default=1.0, help="SITL speed-up (1)")
-    sitl.add_argument("--default-ekf", action="store_true", help="EKF3 as shipped (no --fast-ekf)")
-    sitl.add_argument("--out", type=Path, default=Path("out/sitl"), help="output directory")
-    sitl.add_argument("-v", "--verbose", action="store_true", help="log more")
     return parser
 
 
@@ -262,18 +238,6 @@ def main(argv: list[str] | None = None) -> int:
         format="%(asctime)s %(name)s %(levelname)s %(message)s",
     )
     try:
-        if args.command == "sitl":
-            from sim.sitl import run_cli
-
-            return run_cli(
-                args.scenario,
-                args.out,
-                args.sensors_to,
-                args.instance,
-                args.speedup,
-                not args.default_ekf,
-                args.sensors,
-            )
         return _serve(args) if args.command == "serve" else _bridge(args)
     except ValueError as exc:  # ScenarioError and config validation: say what is wrong
         print(f"error: {exc}", file=sys.stderr)

@@ -13,9 +13,8 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parent.parent
 PACKAGES = ("companion", "sim", "harness")
 
-# `sim.sitl` flies the real SITL with the service (it belongs with the harness); these three
-# modules re-export the moved harness names it still imports by their old paths.
-SIM_UPWARD_ALLOWED = {"sim.sitl", "sim.fly", "sim.metrics", "sim.closed_loop"}
+SIM_UPWARD_ALLOWED: set[str] = set()
+"""Modules under sim allowed to import upward: none."""
 SIM_FORBIDDEN = ("companion.service", "companion.config", "companion.cli", "harness")
 
 

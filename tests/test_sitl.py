@@ -21,7 +21,7 @@ import numpy as np
 import pytest
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
-from sim.sitl import Sitl, SitlFlight, free_udp_port, sitl_params, start_heading_deg
+from harness.sitl import Sitl, SitlFlight, free_udp_port, sitl_params, start_heading_deg
 from tests.sitl_support import (
     COPTER_MODE,
     LAUNCHER,

@@ -51,9 +51,9 @@ from companion.service import Service
 from companion.service.flightlog import read_flight_log
 from companion.service.link import UdpInLink
 from companion.service.notify import SystemdNotifier
-from sim import metrics as metrics_mod
-from sim.closed_loop import RunResult
-from sim.fly import trace_from_log
+from harness import metrics as metrics_mod
+from harness.closed_loop import RunResult
+from harness.fly import trace_from_log
 from sim.mavlink.bridge import SensorBridge
 from sim.mavlink.config import BridgeConfig
 from sim.scenario import Scenario, load_scenario
@@ -636,7 +636,7 @@ def run_cli(
     sensors_path: Path | None = None,
     stream: TextIO = sys.stdout,
 ) -> int:
-    """`python -m sim sitl`: fly a scenario on the real SITL, print the metrics table.
+    """`python -m harness sitl`: fly a scenario on the real SITL, print the metrics table.
     sensors_path: a sensor table (YAML list) replacing the scenario's."""
     launcher = find_sitl()
     if launcher is None:
