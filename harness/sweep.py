@@ -365,7 +365,7 @@ def run_local(tasks: Sequence[Task], workers: int) -> Iterator[dict[str, Any]]:
         for fut in pending:
             fut.cancel()
         procs = list(getattr(pool, "_processes", {}).values())
-        pool.shutdown(wait=False, cancel_futures=True)
+        pool.shutdown(wait=not pending, cancel_futures=True)  # a normal end waits for the workers
         for p in procs:  # do not wait for a long run in progress when interrupted
             if p.is_alive():
                 p.terminate()
