@@ -228,6 +228,7 @@ class Planner:
         self._search_units = 0
         self._search: tuple[tuple[object, ...], Generator[bool, None, _Resolved]] | None = None
         self._v_layout = params.v_d_mps
+        self._ahead_m = 0.0  # the vehicle ahead of X_d along the path, metres
 
     def __deepcopy__(self, memo: dict[int, object]) -> Planner:
         """A copy of the planner; a re-plan search still going on (a generator, which cannot
@@ -323,7 +324,8 @@ class Planner:
         if self._blocked:
             decision = Decision.BLOCKED
 
-        # Reference speed and eq. (5).
+        # Reference speed and eq. (5); the stop allows for the vehicle ahead of X_d.
+        self._ahead_m = self._vehicle_ahead_m(state.position_enu)
         self._update_layout_limit(dt_s, events)
         v_target = self._speed_target()
         heading = self._path_heading()
@@ -722,6 +724,14 @@ class Planner:
         events.append(f"dead end: backing out {plan.back_m:.0f} m, then {detour.side.value}")
         self._blocked = False
 
+    def _vehicle_ahead_m(self, position_enu: FloatArray) -> float:
+        """How far the vehicle is ahead of last cycle's X_d along the path's heading there,
+        metres (0 when behind or level); horizontal."""
+        offset = np.asarray(position_enu, dtype=np.float64)[:2] - self._xd_prev[:2]
+        heading = self._path_heading()
+        ahead = float(offset[0] * math.cos(heading) + offset[1] * math.sin(heading))
+        return ahead if math.isfinite(ahead) and ahead > 0.0 else 0.0
+
     def _free_range(self, ranges: FloatArray, valid: BoolArray) -> tuple[float, float]:
         """Sum of free range seen by the left and by the right obstacle sensors, metres."""
         left = right = 0.0
@@ -778,6 +788,8 @@ class Planner:
                     a,
                     params.d_min_m + 0.5 * params.clearance_margin_m,
                     stop_at_band=self._blocked or self._search is not None,
+                    reaction_s=params.reaction_time_s,
+                    allowance_m=self._ahead_m,
                 ),
             )
         return max(v, 0.0)
