@@ -75,6 +75,10 @@ correction accepted while moving in the project's scenarios and in the random-wo
 (at most 27 units seen), so that the bound changes no decision made on the move; what it
 spreads over cycles are the searches at rest and the dead-end retreat (up to 9 full
 searches, 50-150 ms in one cycle before)."""
+_CARVE_SHORT_M = 0.5
+"""A ray clears remembered points only up to this much short of its range, metres."""
+_CARVE_TOLERANCE_M = 0.25
+"""How close to a ray a remembered point must lie to be cleared by it, metres (one cell)."""
 _YAW_RATE_AT_REST_RAD_S = 0.8
 _YAW_ALIGNED_RAD = 0.1
 _GROUND_HOLD_RANGE = 4.0
@@ -313,6 +317,7 @@ class Planner:
         phi_star = steepness(points[obs], ground, detected)
         steep_xyz, steep_inflation = self._steep_points(points, valid, ground, phi_star)
         decision = decide(phi_star, self._thresholds)
+        self._carve(state, rot, ranges, valid)
         if len(steep_xyz):
             self._memory.add(steep_xyz, self._cycle, steep_inflation)
         self._memory.forget_far(state.position_enu[:2])
@@ -723,6 +728,25 @@ class Planner:
         self._after_retreat = (detour.mode, detour.side, rejoin_on_path)
         events.append(f"dead end: backing out {plan.back_m:.0f} m, then {detour.side.value}")
         self._blocked = False
+
+    def _carve(
+        self, state: VehicleState, rot: FloatArray, ranges: FloatArray, valid: BoolArray
+    ) -> None:
+        """Free-space carving (`ObstacleMemory.carve`): remembered points that this cycle's
+        rays see through are dropped (a phantom from a reading paired with the wrong attitude
+        would otherwise block for ever). A ray counts up to _CARVE_SHORT_M short of what it
+        measured, or of its max range when it saw nothing; readings of 0, NaN or below min
+        range say nothing and carve nothing."""
+        sensors = self.sensors
+        r = np.asarray(ranges, dtype=np.float64)
+        nothing = np.isfinite(r) & (r >= sensors.max_range_m)
+        reach = np.where(valid, r, np.where(nothing, sensors.max_range_m, 0.0))
+        free = reach - _CARVE_SHORT_M
+        use = (valid | nothing) & (free > 0.0)
+        if not use.any() or len(self._memory) == 0:
+            return
+        dirs = sensors.boresights_flu[use] @ rot.T
+        self._memory.carve(state.position_enu, dirs, free[use], _CARVE_TOLERANCE_M)
 
     def _vehicle_ahead_m(self, position_enu: FloatArray) -> float:
         """How far the vehicle is ahead of last cycle's X_d along the path's heading there,
