@@ -79,6 +79,8 @@ _CARVE_SHORT_M = 0.5
 """A ray clears remembered points only up to this much short of its range, metres."""
 _CARVE_TOLERANCE_M = 0.25
 """How close to a ray a remembered point must lie to be cleared by it, metres (one cell)."""
+_CARVE_SUPPORT_M = 0.5
+"""A point with a neighbour this close that stays is on a surface: not carved, metres."""
 _YAW_RATE_AT_REST_RAD_S = 0.8
 _YAW_ALIGNED_RAD = 0.1
 _GROUND_HOLD_RANGE = 4.0
@@ -736,7 +738,11 @@ class Planner:
         rays see through are dropped (a phantom from a reading paired with the wrong attitude
         would otherwise block for ever). A ray counts up to _CARVE_SHORT_M short of what it
         measured, or of its max range when it saw nothing; readings of 0, NaN or below min
-        range say nothing and carve nothing."""
+        range say nothing and carve nothing. Only with X_d at rest (a phantom stops the
+        vehicle): in motion a ray sweeping past a solid's rim would pass just beside points
+        that are real (grazing) and carve them."""
+        if self._v > speed.STOPPED_MPS:
+            return
         sensors = self.sensors
         r = np.asarray(ranges, dtype=np.float64)
         nothing = np.isfinite(r) & (r >= sensors.max_range_m)
@@ -746,7 +752,9 @@ class Planner:
         if not use.any() or len(self._memory) == 0:
             return
         dirs = sensors.boresights_flu[use] @ rot.T
-        self._memory.carve(state.position_enu, dirs, free[use], _CARVE_TOLERANCE_M)
+        self._memory.carve(
+            state.position_enu, dirs, free[use], _CARVE_TOLERANCE_M, _CARVE_SUPPORT_M
+        )
 
     def _vehicle_ahead_m(self, position_enu: FloatArray) -> float:
         """How far the vehicle is ahead of last cycle's X_d along the path's heading there,
