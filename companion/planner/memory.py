@@ -110,6 +110,48 @@ class ObstacleMemory:
         self.generation += 1
         return int(far.sum())
 
+    def carve(
+        self,
+        origin_enu: FloatArray,
+        directions_enu: FloatArray,
+        free_m: FloatArray,
+        tolerance_m: float,
+        support_m: float = 0.0,
+    ) -> int:
+        """Free-space carving: drop remembered points that rays pass through. Ray i starts at
+        origin_enu (3,) along the unit direction directions_enu[i] (world ENU) and saw nothing
+        for its first free_m[i] metres; a point within tolerance_m of the ray (3-D distance)
+        and short of free_m[i] lies where the ray saw nothing. Callers pass free_m short of the
+        measured range by a margin so that a surface point the ray ends on, or one it merely
+        grazes next to where it ends, stays. support_m: a point with a remembered neighbour
+        within support_m (3-D) that no ray clears lies on a surface seen more than once (a
+        ray tangent to a pillar passes right beside the rim points it missed): kept.
+        Returns how many points were dropped."""
+        if not self._cells or len(free_m) == 0:
+            return 0
+        slots = np.fromiter(self._cells.values(), dtype=np.intp, count=len(self._cells))
+        rel = self._xyz[slots] - np.asarray(origin_enu, dtype=np.float64)
+        dirs = np.asarray(directions_enu, dtype=np.float64).reshape(-1, 3)
+        along = rel @ dirs.T  # (k, n): distance along each ray
+        off_sq = (rel * rel).sum(axis=1)[:, None] - along * along
+        free = np.asarray(free_m, dtype=np.float64).reshape(1, -1)
+        inside = (along > 0.0) & (along < free) & (off_sq < tolerance_m * tolerance_m)
+        through = inside.any(axis=1)
+        gone = np.flatnonzero(through)
+        if len(gone) and support_m > 0.0 and not through.all():
+            pts = self._xyz[slots]
+            others = pts[~through]
+            d_sq = ((pts[gone][:, None, :] - others[None, :, :]) ** 2).sum(axis=2)
+            gone = gone[d_sq.min(axis=1) > support_m * support_m]
+        if len(gone) == 0:
+            return 0
+        keys = list(self._cells)
+        for i in gone.tolist():
+            self._free.append(self._cells.pop(keys[i]))
+        self._changed()
+        self.generation += 1
+        return len(gone)
+
     def points_xy(self) -> FloatArray:
         """Remembered points, (k, 2) x, y metres, oldest first."""
         if self._xy is None:

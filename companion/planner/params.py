@@ -30,6 +30,11 @@ class PlannerParams:
     memory_radius_m / memory_max_points / memory_cell_m: obstacle memory bounds.
     arc_method / paper_delta: eq. (5) stepping method and the paper's increment.
     goal_tolerance_m: distance of X_d to the last base point that counts as arrived.
+    reaction_time_s: seconds the stop before an obstacle allows for the vehicle to go on at
+        its speed (readings that arrive late, an autopilot's position controller trailing and
+        then overshooting a decelerating setpoint): X_d brakes v * reaction_time_s earlier,
+        and further by how far the vehicle is measured ahead of X_d along the path. 0: the
+        paper's ideal stop exactly at the trigger.
     """
 
     h_d_m: float = 2.0
@@ -47,6 +52,7 @@ class PlannerParams:
     arc_method: ArcMethod = ArcMethod.EXACT
     paper_delta: float = 1e-4
     goal_tolerance_m: float = 0.05
+    reaction_time_s: float = 0.4
 
     def __post_init__(self) -> None:
         positive = (
@@ -71,6 +77,9 @@ class PlannerParams:
             raise ValueError(f"phi_max_rad must be < pi/2, got {self.phi_max_rad}")
         if not (math.isfinite(self.clearance_margin_m) and self.clearance_margin_m >= 0.0):
             raise ValueError(f"clearance_margin_m must be >= 0, got {self.clearance_margin_m}")
+        if not (math.isfinite(self.reaction_time_s) and 0.0 <= self.reaction_time_s <= 5.0):
+            value = self.reaction_time_s
+            raise ValueError(f"reaction_time_s must be within [0, 5] s, got {value!r}")
         if self.memory_max_points < 16:
             raise ValueError(f"memory_max_points must be >= 16, got {self.memory_max_points}")
         object.__setattr__(self, "arc_method", ArcMethod(self.arc_method))

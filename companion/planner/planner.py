@@ -75,6 +75,12 @@ correction accepted while moving in the project's scenarios and in the random-wo
 (at most 27 units seen), so that the bound changes no decision made on the move; what it
 spreads over cycles are the searches at rest and the dead-end retreat (up to 9 full
 searches, 50-150 ms in one cycle before)."""
+_CARVE_SHORT_M = 0.5
+"""A ray clears remembered points only up to this much short of its range, metres."""
+_CARVE_TOLERANCE_M = 0.25
+"""How close to a ray a remembered point must lie to be cleared by it, metres (one cell)."""
+_CARVE_SUPPORT_M = 0.5
+"""A point with a neighbour this close that stays is on a surface: not carved, metres."""
 _YAW_RATE_AT_REST_RAD_S = 0.8
 _YAW_ALIGNED_RAD = 0.1
 _GROUND_HOLD_RANGE = 4.0
@@ -228,6 +234,7 @@ class Planner:
         self._search_units = 0
         self._search: tuple[tuple[object, ...], Generator[bool, None, _Resolved]] | None = None
         self._v_layout = params.v_d_mps
+        self._ahead_m = 0.0  # the vehicle ahead of X_d along the path, metres
 
     def __deepcopy__(self, memo: dict[int, object]) -> Planner:
         """A copy of the planner; a re-plan search still going on (a generator, which cannot
@@ -312,6 +319,7 @@ class Planner:
         phi_star = steepness(points[obs], ground, detected)
         steep_xyz, steep_inflation = self._steep_points(points, valid, ground, phi_star)
         decision = decide(phi_star, self._thresholds)
+        self._carve(state, rot, ranges, valid)
         if len(steep_xyz):
             self._memory.add(steep_xyz, self._cycle, steep_inflation)
         self._memory.forget_far(state.position_enu[:2])
@@ -323,7 +331,8 @@ class Planner:
         if self._blocked:
             decision = Decision.BLOCKED
 
-        # Reference speed and eq. (5).
+        # Reference speed and eq. (5); the stop allows for the vehicle ahead of X_d.
+        self._ahead_m = self._vehicle_ahead_m(state.position_enu)
         self._update_layout_limit(dt_s, events)
         v_target = self._speed_target()
         heading = self._path_heading()
@@ -722,6 +731,39 @@ class Planner:
         events.append(f"dead end: backing out {plan.back_m:.0f} m, then {detour.side.value}")
         self._blocked = False
 
+    def _carve(
+        self, state: VehicleState, rot: FloatArray, ranges: FloatArray, valid: BoolArray
+    ) -> None:
+        """Free-space carving (`ObstacleMemory.carve`): remembered points that this cycle's
+        rays see through are dropped (a phantom from a reading paired with the wrong attitude
+        would otherwise block for ever). A ray counts up to _CARVE_SHORT_M short of what it
+        measured, or of its max range when it saw nothing; readings of 0, NaN or below min
+        range say nothing and carve nothing. Only with X_d at rest (a phantom stops the
+        vehicle): in motion a ray sweeping past a solid's rim would pass just beside points
+        that are real (grazing) and carve them."""
+        if self._v > speed.STOPPED_MPS:
+            return
+        sensors = self.sensors
+        r = np.asarray(ranges, dtype=np.float64)
+        nothing = np.isfinite(r) & (r >= sensors.max_range_m)
+        reach = np.where(valid, r, np.where(nothing, sensors.max_range_m, 0.0))
+        free = reach - _CARVE_SHORT_M
+        use = (valid | nothing) & (free > 0.0)
+        if not use.any() or len(self._memory) == 0:
+            return
+        dirs = sensors.boresights_flu[use] @ rot.T
+        self._memory.carve(
+            state.position_enu, dirs, free[use], _CARVE_TOLERANCE_M, _CARVE_SUPPORT_M
+        )
+
+    def _vehicle_ahead_m(self, position_enu: FloatArray) -> float:
+        """How far the vehicle is ahead of last cycle's X_d along the path's heading there,
+        metres (0 when behind or level); horizontal."""
+        offset = np.asarray(position_enu, dtype=np.float64)[:2] - self._xd_prev[:2]
+        heading = self._path_heading()
+        ahead = float(offset[0] * math.cos(heading) + offset[1] * math.sin(heading))
+        return ahead if math.isfinite(ahead) and ahead > 0.0 else 0.0
+
     def _free_range(self, ranges: FloatArray, valid: BoolArray) -> tuple[float, float]:
         """Sum of free range seen by the left and by the right obstacle sensors, metres."""
         left = right = 0.0
@@ -778,6 +820,8 @@ class Planner:
                     a,
                     params.d_min_m + 0.5 * params.clearance_margin_m,
                     stop_at_band=self._blocked or self._search is not None,
+                    reaction_s=params.reaction_time_s,
+                    allowance_m=self._ahead_m,
                 ),
             )
         return max(v, 0.0)

@@ -20,11 +20,22 @@ STOPPED_MPS = 1e-3
 """Below this speed X_d counts as at rest."""
 _STOP_SHORT_M = 0.05
 """How far short of a place closer than the re-plan distance X_d stops, metres."""
+_REST_M = 0.01
+"""Closer than this to its stop X_d stops at once (`reacting_speed` would creep), metres."""
 
 
 def braking_speed(distance_m: float, accel_mps2: float) -> float:
     """The speed from which braking at accel_mps2 stops within distance_m (0 if <= 0)."""
     return math.sqrt(2.0 * accel_mps2 * max(distance_m, 0.0))
+
+
+def reacting_speed(distance_m: float, accel_mps2: float, reaction_s: float) -> float:
+    """The speed v from which a vehicle that keeps v for reaction_s seconds, then brakes at
+    accel_mps2, stops within distance_m: v t + v^2 / (2 a) = d (0 if d <= _REST_M)."""
+    if distance_m <= _REST_M:
+        return 0.0
+    a, t = accel_mps2, reaction_s
+    return a * (math.sqrt(t * t + 2.0 * distance_m / a) - t)
 
 
 def next_stop(stops: Sequence[float], s_m: float) -> float | None:
@@ -53,9 +64,15 @@ def clearance_limit(
     accel_mps2: float,
     replan_distance_m: float,
     stop_at_band: bool,
+    reaction_s: float = 0.0,
+    allowance_m: float = 0.0,
 ) -> float:
     """The speed from which X_d stops _STOP_SHORT_M before the first look-ahead sample
     (arc lengths look_s, clearances clearance_m) closer than the re-plan distance; inf if none.
+
+    reaction_s: the stop is planned as if the vehicle kept its speed that long before braking
+    (late readings, a position controller that trails its setpoint), so it brakes v t earlier.
+    allowance_m: a further distance short of it (the vehicle measured ahead of X_d).
 
     stop_at_band: the planner is blocked or still searching, so it stops before the band
     even when already inside it. Otherwise a path that leads out of the band (an accepted
@@ -68,8 +85,10 @@ def clearance_limit(
     too_close = np.flatnonzero(clearance_m < limit)
     if len(too_close) == 0:
         return math.inf
-    free = float(look_s[too_close[0]] - s_m)
-    return braking_speed(free - _STOP_SHORT_M, accel_mps2)
+    free = float(look_s[too_close[0]] - s_m) - _STOP_SHORT_M - max(allowance_m, 0.0)
+    if reaction_s <= 0.0:
+        return braking_speed(free, accel_mps2)
+    return reacting_speed(free, accel_mps2, reaction_s)
 
 
 def ramp(v_mps: float, v_target_mps: float, accel_mps2: float, dt_s: float) -> float:
