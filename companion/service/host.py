@@ -320,9 +320,11 @@ class PlannerHost:
                 }
             )
         self.counters["planner_starts"] += 1
+        x0, y0 = (round(float(v), 2) + 0.0 for v in route.base_points[0][:2])  # no "-0.00"
         log.info(
-            "planner started at %s with %d base points",
-            np.round(route.base_points[0], 2),
+            "planner started at E %.2f m, N %.2f m with %d base points",
+            x0,
+            y0,
             len(route.base_points) - 1,
         )
 
