@@ -27,7 +27,8 @@ import asyncio
 import contextlib
 import errno
 import logging
-from collections.abc import Coroutine
+import math
+from collections.abc import Callable, Coroutine
 from typing import Any
 
 from companion.config import ServiceConfig
@@ -52,7 +53,7 @@ from companion.service.link import Link
 from companion.service.modes import Ownership
 from companion.service.notify import SystemdNotifier
 from companion.service.signing import SigningKeyError, SigningState, load_key, timestamp_now
-from companion.service.status import PlannerState, SensorFreshness, ServiceStatus
+from companion.service.status import PlannerState, SensorFreshness, ServiceStatus, status_line
 from companion.service.statustext import Severity, StatusTexts
 from companion.service.supervisor import Supervisor
 from companion.service.telemetry import Telemetry
@@ -92,6 +93,9 @@ class Service:
         self.cfg = config
         self.link = link
         self.notifier = notifier or SystemdNotifier()
+        self.status_sink: Callable[[str], None] | None = None
+        """Where the status line goes once a second (wall time), e.g. a terminal; systemd's
+        STATUS= gets the same text through the notifier once the autopilot is configured."""
         self.sim_time = config.control.time_source == "sim"
         if clock is None:
             clock = SimClock() if self.sim_time else MonotonicClock()
@@ -301,6 +305,10 @@ class Service:
 
         pts = host.route_source_points
         kind = cycle.last_kind
+        pos = tel.position
+        speed = None if pos is None else math.hypot(*pos.velocity_ned_mps)
+        seen = [r for r in tel.range_vector(now, max_age) if r > 0.0]  # NaN, 0: nothing
+        nearest = min(seen) if seen else None
         return ServiceStatus(
             t=now,
             health=cycle.health,
@@ -328,7 +336,23 @@ class Service:
             ),
             auto_start_busy=self.supervisor.auto_busy,
             counters=self.counter_values(),
+            speed_mps=speed,
+            nearest_m=None if nearest is None else float(nearest),
+            decision=cycle.last_decision,
         )
+
+    def _publish_status(self) -> None:
+        """The status line to the sink (every call) and to systemd (once configured: before
+        that the supervisor's own STATUS= words stand)."""
+        sink, notifier = self.status_sink, self.notifier
+        to_systemd = notifier.enabled and self.supervisor.configured
+        if sink is None and not to_systemd:
+            return
+        text = status_line(self.status())
+        if sink is not None:
+            sink(text)
+        if to_systemd:
+            notifier.status(text)
 
     # === setup and shutdown ================================================================
 
@@ -492,6 +516,7 @@ class Service:
             now = wall.now()
             if self._loop_healthy(now):
                 self.notifier.watchdog()
+            self._publish_status()
             if self.codec.signing_enabled:
                 self.codec.advance_signing_clock(timestamp_now())
                 if now - last_save >= COUNTERS_EVERY_S:
