@@ -158,6 +158,82 @@ def pymavlink_floor(cycles: int = 2000) -> dict[str, float]:
     return {"per_cycle_us": per_cycle_us, "messages_per_cycle": len(frames) + 1}
 
 
+def service_parts(cycles: int = 2000) -> dict[str, float]:
+    """Microseconds per cycle of the service's own work on one cycle's inputs, in process,
+    part by part (the planner's step is bench/planner.py's): the codec (the service's
+    `MavCodec` decoding the 13 frames and encoding a setpoint), telemetry validation of the
+    13 messages, the geodesy of a cycle (position to ENU, setpoint to geodetic) and the
+    flight-log record's encoding."""
+    from companion.geo import GeoPoint
+    from companion.planner.sensors import mav_orientation_for_boresight
+    from companion.service.codec import MavCodec
+    from companion.service.flightlog import dumps_record
+    from companion.service.geodesy import TangentPlane
+    from companion.service.setpoints import SetpointFrame, position_target
+    from companion.service.telemetry import Telemetry
+
+    scenario = load_scenario(PAPER)
+    table = service_config(scenario, 14540, np.zeros(2), Path(".")).sensor_table()
+    tx = mavlink.MAVLink(None, srcSystem=1, srcComponent=1)
+    orient = [mav_orientation_for_boresight(s.boresight_frd) for s in table.specs]
+
+    def frames(k: int) -> list[bytes]:
+        tb = 1000 + 20 * k
+        out = [
+            tx.distance_sensor_encode(tb, 10, 1200, 350, 0, s.sensor_id, orient[i], 0).pack(tx)
+            for i, s in enumerate(table.specs)
+        ]
+        out.append(tx.attitude_encode(tb, 0.01, -0.02, 1.5, 0.0, 0.0, 0.0).pack(tx))
+        lat = 473977420 + k
+        out.append(
+            tx.global_position_int_encode(tb, lat, 85455940, 50000, 2000, 10, 0, 0, 0).pack(tx)
+        )
+        return out
+
+    inputs = [frames(k) for k in range(cycles)]
+    codec, tel = MavCodec(), Telemetry(table)
+    plane = TangentPlane(GeoPoint(47.397742, 8.545594, 488.0))
+    rng = np.random.default_rng(0)
+    record = {
+        "type": "cycle", "t": 1.0, "health": "active", "own": "engaged", "verdict": "run",
+        "reason": "", "pos": rng.normal(size=3), "rpy": [0.01, -0.02, 1.5],
+        "ranges": rng.uniform(0.0, 12.0, len(table)),
+        "sp": {"p": rng.normal(size=3), "v": rng.normal(size=3), "yaw": 1.5, "pitch": 0.1},
+        "sp_kind": "planner", "decision": "follow", "mode": "nominal", "side": "none",
+        "min_range": 3.5, "phi_star": 0.2, "phi_star_threshold": 0.5, "phi_d": 0.1,
+        "v_ref": 1.0, "replanned": False, "finished": False, "events": [],
+    }  # fmt: skip
+    t = {"codec": 0, "telemetry": 0, "geodesy": 0, "flight_log": 0}
+    accepted = 0
+    for k, fs in enumerate(inputs):
+        t_rx = 1.0 + 0.02 * k
+        t0 = time.perf_counter_ns()
+        msgs = [m for f in fs for m in codec.decode(f)]
+        t1 = time.perf_counter_ns()
+        accepted += sum(tel.update(m, t_rx) is not None for m in msgs)
+        t2 = time.perf_counter_ns()
+        pos = tel.position
+        assert pos is not None
+        plane.to_enu(GeoPoint(pos.lat_deg, pos.lon_deg, pos.alt_amsl_m))
+        sp = position_target(
+            np.array([1.0, 2.0, 3.0]), np.array([0.5, 0.0, 0.1]), 0.3, frame=plane,
+            mav_frame=SetpointFrame.GLOBAL_RELATIVE_ALT, home_alt_amsl_m=488.0,
+            time_boot_ms=k, target_system=1, target_component=1,
+        )  # fmt: skip
+        t3 = time.perf_counter_ns()
+        codec.encode(sp)
+        t4 = time.perf_counter_ns()
+        dumps_record(record)
+        t5 = time.perf_counter_ns()
+        t["codec"] += (t1 - t0) + (t4 - t3)
+        t["telemetry"] += t2 - t1
+        t["geodesy"] += t3 - t2
+        t["flight_log"] += t5 - t4
+    if accepted != cycles * 13:
+        raise RuntimeError(f"telemetry accepted {accepted} of {cycles * 13} messages")
+    return {k: v / cycles / 1e3 for k, v in t.items()}
+
+
 async def _wait(pred: Any, timeout_s: float, what: str) -> None:
     deadline = time.monotonic() + timeout_s
     while not pred():
@@ -292,9 +368,12 @@ async def lockstep(hour_s: float, flight_s: tuple[float, float] = (20.0, 120.0))
 def run(quick: bool = False) -> Section:
     sec = Section("service over UDP")
     floor = pymavlink_floor(500 if quick else 2000)
+    parts = service_parts(500 if quick else 2000)
     rt = asyncio.run(realtime(8.0 if quick else 30.0))
     ls = asyncio.run(lockstep(600.0 if quick else 3600.0))
-    sec.details.update({"pymavlink_floor": floor, "realtime": rt, "lockstep": ls})
+    sec.details.update(
+        {"pymavlink_floor": floor, "service_parts": parts, "realtime": rt, "lockstep": ls}
+    )
     lat, jit = rt["latency_us"], rt["jitter_us"]
     sec.add(
         "service.latency.median_us",
@@ -336,6 +415,13 @@ def run(quick: bool = False) -> Section:
         floor["per_cycle_us"],
         "us",
     )
+    for part, label in (
+        ("codec", "the service's codec: decode 13 frames + encode 1"),
+        ("telemetry", "telemetry validation of 13 messages"),
+        ("geodesy", "geodesy of a cycle (position -> ENU, setpoint -> lat/lon)"),
+        ("flight_log", "flight-log record encoding"),
+    ):
+        sec.add(f"service.part.{part}_us", f"per cycle, in process: {label}", parts[part], "us")
     sec.add(
         "service.floor_ratio",
         "service CPU per cycle / pymavlink floor",
