@@ -54,6 +54,12 @@ from sim.scenario import Scenario, load_scenario
 PAPER = SCENARIO_DIR / "paper.yaml"
 RATE_HZ = 50.0
 SETPOINT_MSGID = mavlink.MAVLINK_MSG_ID_SET_POSITION_TARGET_GLOBAL_INT
+INPUT_TYPES = {
+    mavlink.MAVLINK_MSG_ID_DISTANCE_SENSOR: "DISTANCE_SENSOR",
+    mavlink.MAVLINK_MSG_ID_ATTITUDE: "ATTITUDE",
+    mavlink.MAVLINK_MSG_ID_GLOBAL_POSITION_INT: "GLOBAL_POSITION_INT",
+}
+"""The inputs a cycle uses, by message id (latency is measured per type)."""
 
 
 def _msgid(frame: bytes) -> int | None:
@@ -74,17 +80,28 @@ class TimedLink(UdpOutLink):
         self.last_rx: float | None = None
         self.setpoints: list[tuple[float, float | None]] = []
         """(send time, arrival time of the newest datagram before it)."""
+        self.by_type: dict[str, list[float]] = {name: [] for name in INPUT_TYPES.values()}
+        """Per input type: setpoint send time - arrival of the newest datagram of that type,
+        for the setpoints that followed one (s)."""
+        self._pending: dict[int, float] = {}
 
     async def open(self, receiver: Receiver) -> None:
         def timed(data: bytes, peer: Any) -> None:
-            self.last_rx = time.perf_counter()
+            self.last_rx = now = time.perf_counter()
+            msgid = _msgid(data)
+            if msgid is not None and msgid in INPUT_TYPES:
+                self._pending[msgid] = now
             receiver(data, peer)
 
         await super().open(timed)
 
     def send(self, data: bytes) -> None:
         if _msgid(data) == SETPOINT_MSGID:
-            self.setpoints.append((time.perf_counter(), self.last_rx))
+            now = time.perf_counter()
+            self.setpoints.append((now, self.last_rx))
+            for msgid, t_rx in self._pending.items():
+                self.by_type[INPUT_TYPES[msgid]].append(now - t_rx)
+            self._pending.clear()
         super().send(data)
 
 
@@ -268,12 +285,15 @@ async def realtime(seconds: float) -> dict[str, Any]:
                 await _wait(lambda: svc.counters["planner_starts"] >= 1, 90.0, "the planner")
                 await asyncio.sleep(1.0)
                 link.setpoints.clear()
+                for samples in link.by_type.values():
+                    samples.clear()
                 cycles0 = svc.counters["cycles"]
                 cpu0, wall0 = time.process_time(), time.perf_counter()
                 await asyncio.sleep(seconds)
                 cpu1, wall1 = time.process_time(), time.perf_counter()
                 cycles = svc.counters["cycles"] - cycles0
                 setpoints = list(link.setpoints)
+                by_type = {k: [int(v * 1e9) for v in vs] for k, vs in link.by_type.items()}
                 counters = svc.counter_values()
             finally:
                 svc.stop()
@@ -290,11 +310,14 @@ async def realtime(seconds: float) -> dict[str, Any]:
         "cycles": cycles,
         "setpoints": len(setpoints),
         "latency_us": percentiles_us(latency_ns),
+        "latency_by_type_us": {k: percentiles_us(v) for k, v in by_type.items()},
         "jitter_us": percentiles_us(jitter_ns),
         "cpu_percent": 100.0 * cpu_s / (wall1 - wall0),
         "cpu_per_cycle_us": 1e6 * cpu_s / max(cycles, 1),
         "pinned_core": service_core,
         "cycle_overruns": counters.get("service.cycle_overruns", 0),
+        "cycles_by_input": counters.get("service.cycles_by_input", 0),
+        "cycles_by_timer": counters.get("service.cycles_by_timer", 0),
         "planner_errors": counters.get("service.planner_errors", 0),
     }
 
@@ -388,6 +411,13 @@ def run(quick: bool = False) -> Section:
         "us",
         ("<=", 2000),
     )
+    for name, lt in rt["latency_by_type_us"].items():
+        sec.add(
+            f"service.latency.{name.lower()}.p99_us",
+            f"newest {name} -> setpoint latency, p99 (n={lt.get('n', 0)})",
+            lt.get("p99", math.nan),
+            "us",
+        )
     sec.add(
         "service.jitter.p99_us",
         "loop jitter (|interval - 20 ms|), p99",
