@@ -114,6 +114,8 @@ class Service:
         DISTANCE_SENSOR ids, each of those that streamed during the last cycle period."""
         self._arrived: set[str | int] = set()
         self._arrived_before: set[str | int] = set()
+        self._trigger_t = 0.0
+        """When the inputs of the awaited cycle were complete (service clock, s)."""
 
         ident = config.identity
         sid = ident.system_id if isinstance(ident.system_id, int) else 1
@@ -511,6 +513,7 @@ class Service:
             and not trigger.done()
             and self._awaited <= self._arrived
         ):
+            self._trigger_t = self.clock.now()
             trigger.set_result(None)
 
     async def _cycle_loop(self) -> None:
@@ -528,8 +531,12 @@ class Service:
         clock, period = self.clock, self.period_s
         cap = RATE_BURST_PERIODS * period
         credit, last = period, clock.now()
+        # when the cycle should have started (its inputs complete or its deadline, and the
+        # credit there): one ending more than a period after that is an overrun
+        due = last
         while True:
             start = clock.now()
+            late = start - due
             # the rate bound: a cycle spends one period of credit, credit accrues with time
             credit = min(credit + (start - last), cap) - period
             last = start
@@ -540,8 +547,9 @@ class Service:
             self._trigger = trigger = loop.create_future()
             self.cycle.safe_tick(start)
             elapsed = clock.now() - start
-            if elapsed > period:
+            if late + elapsed > period:
                 self.counters["cycle_overruns"] += 1
+            deadline = start + TRIGGER_DEADLINE_PERIODS * period
             handle = loop.call_later(
                 max(TRIGGER_DEADLINE_PERIODS * period - elapsed, 0.0),
                 _resolve,
@@ -551,6 +559,8 @@ class Service:
             handle.cancel()
             by_input = bool(self._awaited) and self._awaited <= self._arrived
             self.counters["cycles_by_input" if by_input else "cycles_by_timer"] += 1
+            woken = self._trigger_t if by_input else deadline
+            due = max(min(woken, clock.now()), last + period - credit)
             wait = period - (credit + (clock.now() - last))
             if wait > 0.0:
                 await asyncio.sleep(wait)
