@@ -54,6 +54,12 @@ from sim.scenario import Scenario, load_scenario
 PAPER = SCENARIO_DIR / "paper.yaml"
 RATE_HZ = 50.0
 SETPOINT_MSGID = mavlink.MAVLINK_MSG_ID_SET_POSITION_TARGET_GLOBAL_INT
+INPUT_TYPES = {
+    mavlink.MAVLINK_MSG_ID_DISTANCE_SENSOR: "DISTANCE_SENSOR",
+    mavlink.MAVLINK_MSG_ID_ATTITUDE: "ATTITUDE",
+    mavlink.MAVLINK_MSG_ID_GLOBAL_POSITION_INT: "GLOBAL_POSITION_INT",
+}
+"""The inputs a cycle uses, by message id (latency is measured per type)."""
 
 
 def _msgid(frame: bytes) -> int | None:
@@ -74,17 +80,28 @@ class TimedLink(UdpOutLink):
         self.last_rx: float | None = None
         self.setpoints: list[tuple[float, float | None]] = []
         """(send time, arrival time of the newest datagram before it)."""
+        self.by_type: dict[str, list[float]] = {name: [] for name in INPUT_TYPES.values()}
+        """Per input type: setpoint send time - arrival of the newest datagram of that type,
+        for the setpoints that followed one (s)."""
+        self._pending: dict[int, float] = {}
 
     async def open(self, receiver: Receiver) -> None:
         def timed(data: bytes, peer: Any) -> None:
-            self.last_rx = time.perf_counter()
+            self.last_rx = now = time.perf_counter()
+            msgid = _msgid(data)
+            if msgid is not None and msgid in INPUT_TYPES:
+                self._pending[msgid] = now
             receiver(data, peer)
 
         await super().open(timed)
 
     def send(self, data: bytes) -> None:
         if _msgid(data) == SETPOINT_MSGID:
-            self.setpoints.append((time.perf_counter(), self.last_rx))
+            now = time.perf_counter()
+            self.setpoints.append((now, self.last_rx))
+            for msgid, t_rx in self._pending.items():
+                self.by_type[INPUT_TYPES[msgid]].append(now - t_rx)
+            self._pending.clear()
         super().send(data)
 
 
@@ -158,6 +175,82 @@ def pymavlink_floor(cycles: int = 2000) -> dict[str, float]:
     return {"per_cycle_us": per_cycle_us, "messages_per_cycle": len(frames) + 1}
 
 
+def service_parts(cycles: int = 2000) -> dict[str, float]:
+    """Microseconds per cycle of the service's own work on one cycle's inputs, in process,
+    part by part (the planner's step is bench/planner.py's): the codec (the service's
+    `MavCodec` decoding the 13 frames and encoding a setpoint), telemetry validation of the
+    13 messages, the geodesy of a cycle (position to ENU, setpoint to geodetic) and the
+    flight-log record's encoding."""
+    from companion.geo import GeoPoint
+    from companion.planner.sensors import mav_orientation_for_boresight
+    from companion.service.codec import MavCodec
+    from companion.service.flightlog import dumps_record
+    from companion.service.geodesy import TangentPlane
+    from companion.service.setpoints import SetpointFrame, position_target
+    from companion.service.telemetry import Telemetry
+
+    scenario = load_scenario(PAPER)
+    table = service_config(scenario, 14540, np.zeros(2), Path(".")).sensor_table()
+    tx = mavlink.MAVLink(None, srcSystem=1, srcComponent=1)
+    orient = [mav_orientation_for_boresight(s.boresight_frd) for s in table.specs]
+
+    def frames(k: int) -> list[bytes]:
+        tb = 1000 + 20 * k
+        out = [
+            tx.distance_sensor_encode(tb, 10, 1200, 350, 0, s.sensor_id, orient[i], 0).pack(tx)
+            for i, s in enumerate(table.specs)
+        ]
+        out.append(tx.attitude_encode(tb, 0.01, -0.02, 1.5, 0.0, 0.0, 0.0).pack(tx))
+        lat = 473977420 + k
+        out.append(
+            tx.global_position_int_encode(tb, lat, 85455940, 50000, 2000, 10, 0, 0, 0).pack(tx)
+        )
+        return out
+
+    inputs = [frames(k) for k in range(cycles)]
+    codec, tel = MavCodec(), Telemetry(table)
+    plane = TangentPlane(GeoPoint(47.397742, 8.545594, 488.0))
+    rng = np.random.default_rng(0)
+    record = {
+        "type": "cycle", "t": 1.0, "health": "active", "own": "engaged", "verdict": "run",
+        "reason": "", "pos": rng.normal(size=3), "rpy": [0.01, -0.02, 1.5],
+        "ranges": rng.uniform(0.0, 12.0, len(table)),
+        "sp": {"p": rng.normal(size=3), "v": rng.normal(size=3), "yaw": 1.5, "pitch": 0.1},
+        "sp_kind": "planner", "decision": "follow", "mode": "nominal", "side": "none",
+        "min_range": 3.5, "phi_star": 0.2, "phi_star_threshold": 0.5, "phi_d": 0.1,
+        "v_ref": 1.0, "replanned": False, "finished": False, "events": [],
+    }  # fmt: skip
+    t = {"codec": 0, "telemetry": 0, "geodesy": 0, "flight_log": 0}
+    accepted = 0
+    for k, fs in enumerate(inputs):
+        t_rx = 1.0 + 0.02 * k
+        t0 = time.perf_counter_ns()
+        msgs = [m for f in fs for m in codec.decode(f)]
+        t1 = time.perf_counter_ns()
+        accepted += sum(tel.update(m, t_rx) is not None for m in msgs)
+        t2 = time.perf_counter_ns()
+        pos = tel.position
+        assert pos is not None
+        plane.to_enu(GeoPoint(pos.lat_deg, pos.lon_deg, pos.alt_amsl_m))
+        sp = position_target(
+            np.array([1.0, 2.0, 3.0]), np.array([0.5, 0.0, 0.1]), 0.3, frame=plane,
+            mav_frame=SetpointFrame.GLOBAL_RELATIVE_ALT, home_alt_amsl_m=488.0,
+            time_boot_ms=k, target_system=1, target_component=1,
+        )  # fmt: skip
+        t3 = time.perf_counter_ns()
+        codec.encode(sp)
+        t4 = time.perf_counter_ns()
+        dumps_record(record)
+        t5 = time.perf_counter_ns()
+        t["codec"] += (t1 - t0) + (t4 - t3)
+        t["telemetry"] += t2 - t1
+        t["geodesy"] += t3 - t2
+        t["flight_log"] += t5 - t4
+    if accepted != cycles * 13:
+        raise RuntimeError(f"telemetry accepted {accepted} of {cycles * 13} messages")
+    return {k: v / cycles / 1e3 for k, v in t.items()}
+
+
 async def _wait(pred: Any, timeout_s: float, what: str) -> None:
     deadline = time.monotonic() + timeout_s
     while not pred():
@@ -192,12 +285,15 @@ async def realtime(seconds: float) -> dict[str, Any]:
                 await _wait(lambda: svc.counters["planner_starts"] >= 1, 90.0, "the planner")
                 await asyncio.sleep(1.0)
                 link.setpoints.clear()
+                for samples in link.by_type.values():
+                    samples.clear()
                 cycles0 = svc.counters["cycles"]
                 cpu0, wall0 = time.process_time(), time.perf_counter()
                 await asyncio.sleep(seconds)
                 cpu1, wall1 = time.process_time(), time.perf_counter()
                 cycles = svc.counters["cycles"] - cycles0
                 setpoints = list(link.setpoints)
+                by_type = {k: [int(v * 1e9) for v in vs] for k, vs in link.by_type.items()}
                 counters = svc.counter_values()
             finally:
                 svc.stop()
@@ -214,11 +310,14 @@ async def realtime(seconds: float) -> dict[str, Any]:
         "cycles": cycles,
         "setpoints": len(setpoints),
         "latency_us": percentiles_us(latency_ns),
+        "latency_by_type_us": {k: percentiles_us(v) for k, v in by_type.items()},
         "jitter_us": percentiles_us(jitter_ns),
         "cpu_percent": 100.0 * cpu_s / (wall1 - wall0),
         "cpu_per_cycle_us": 1e6 * cpu_s / max(cycles, 1),
         "pinned_core": service_core,
         "cycle_overruns": counters.get("service.cycle_overruns", 0),
+        "cycles_by_input": counters.get("service.cycles_by_input", 0),
+        "cycles_by_timer": counters.get("service.cycles_by_timer", 0),
         "planner_errors": counters.get("service.planner_errors", 0),
     }
 
@@ -292,9 +391,12 @@ async def lockstep(hour_s: float, flight_s: tuple[float, float] = (20.0, 120.0))
 def run(quick: bool = False) -> Section:
     sec = Section("service over UDP")
     floor = pymavlink_floor(500 if quick else 2000)
+    parts = service_parts(500 if quick else 2000)
     rt = asyncio.run(realtime(8.0 if quick else 30.0))
     ls = asyncio.run(lockstep(600.0 if quick else 3600.0))
-    sec.details.update({"pymavlink_floor": floor, "realtime": rt, "lockstep": ls})
+    sec.details.update(
+        {"pymavlink_floor": floor, "service_parts": parts, "realtime": rt, "lockstep": ls}
+    )
     lat, jit = rt["latency_us"], rt["jitter_us"]
     sec.add(
         "service.latency.median_us",
@@ -309,6 +411,13 @@ def run(quick: bool = False) -> Section:
         "us",
         ("<=", 2000),
     )
+    for name, lt in rt["latency_by_type_us"].items():
+        sec.add(
+            f"service.latency.{name.lower()}.p99_us",
+            f"newest {name} -> setpoint latency, p99 (n={lt.get('n', 0)})",
+            lt.get("p99", math.nan),
+            "us",
+        )
     sec.add(
         "service.jitter.p99_us",
         "loop jitter (|interval - 20 ms|), p99",
@@ -336,6 +445,13 @@ def run(quick: bool = False) -> Section:
         floor["per_cycle_us"],
         "us",
     )
+    for part, label in (
+        ("codec", "the service's codec: decode 13 frames + encode 1"),
+        ("telemetry", "telemetry validation of 13 messages"),
+        ("geodesy", "geodesy of a cycle (position -> ENU, setpoint -> lat/lon)"),
+        ("flight_log", "flight-log record encoding"),
+    ):
+        sec.add(f"service.part.{part}_us", f"per cycle, in process: {label}", parts[part], "us")
     sec.add(
         "service.floor_ratio",
         "service CPU per cycle / pymavlink floor",

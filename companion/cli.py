@@ -171,6 +171,11 @@ def _parser() -> argparse.ArgumentParser:
     run.add_argument(
         "--connection", type=Connection(), help="override the config's link.connection"
     )
+    run.add_argument(
+        "--quiet",
+        action="store_true",
+        help="no live status line (there is none when stderr is not a terminal)",
+    )
 
     check = sub.add_parser("check-config", help="validate a service config file and exit")
     check.add_argument("config", type=ConfigFile())
@@ -322,7 +327,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         if args.command == "run":
             from companion.service import main as service_main
 
-            return service_main(args.config, args.connection, args.log_level)
+            return service_main(args.config, args.connection, args.log_level, quiet=args.quiet)
         if args.command == "check-config":
             from companion.config import check_config
 

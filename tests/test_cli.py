@@ -23,7 +23,7 @@ def test_run_passes_connection_and_log_level(
     import companion.service
 
     seen: list[tuple[object, ...]] = []
-    monkeypatch.setattr(companion.service, "main", lambda *a: seen.append(a) or 0)
+    monkeypatch.setattr(companion.service, "main", lambda *a, **k: seen.append(a) or 0)
     argv = ["run", "--config", str(CONFIG), "--connection", "udp://:14541", *extra]
     assert cli.main(argv) == 0
     assert seen == [(CONFIG, "udpin:0.0.0.0:14541", level)]
@@ -79,3 +79,13 @@ def test_simulate_json_prints_the_metrics_document(
     assert doc["scenario"] == "smooth-hill" and doc["reached_goal"] is True
     assert "scenario smooth-hill" in stderr  # the human table went to stderr
     assert not (out / "fig6.png").exists()
+
+
+@pytest.mark.parametrize(("extra", "quiet"), [([], False), (["--quiet"], True)])
+def test_run_passes_quiet(extra: list[str], quiet: bool, monkeypatch: pytest.MonkeyPatch) -> None:
+    import companion.service
+
+    seen: list[dict[str, object]] = []
+    monkeypatch.setattr(companion.service, "main", lambda *a, **k: seen.append(k) or 0)
+    assert cli.main(["run", "--config", str(CONFIG), *extra]) == 0
+    assert seen == [{"quiet": quiet}]

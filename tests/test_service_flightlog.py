@@ -63,3 +63,24 @@ async def test_service_writes_a_cycle_per_line(tmp_path: Path) -> None:
     assert log.frames and log.frames[0]["origin"][0] == pytest.approx(47.397742)
     assert any(text == "flying route" for _, text in log.events)
     assert log.counters["service.cycles"] >= len(log) - 1
+
+
+def test_dumps_record_is_the_same_text_as_cleaning_first() -> None:
+    """The direct encoding and the `clean` fallback write the same line for every record."""
+    import json
+
+    import numpy as np
+
+    from companion.service.flightlog import clean, dumps_record
+
+    records = [
+        {"t": 1.5, "pos": np.array([1.0, -0.0, 3.25]), "sp": {"yaw": np.float64(0.1)}},
+        {"ranges": np.array([1.0, np.nan, 0.0]), "min_range": np.inf, "n": np.int64(3)},
+        {"rpy": [np.float32(0.5), 2.0, -1e-300], "events": ["a", "NaN"], "x": None},
+        {"m": np.arange(6, dtype=np.float64).reshape(2, 3), "k": (1, 2), "f": -np.inf},
+        {"i": np.arange(3), "flag": True, "nested": [{"a": float("nan")}, np.float64(2.0)]},
+    ]
+    for rec in records:
+        line = dumps_record(rec)
+        assert line == json.dumps(clean(rec), separators=(",", ":"))
+        assert "NaN" not in line.replace('"NaN"', "") and "Infinity" not in line

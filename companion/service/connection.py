@@ -127,7 +127,10 @@ class Connection:
         n = self.counters[name] + 1
         self.counters[name] = n
         if n in LOG_AT_COUNTS:
-            log.warning(
+            # once as a warning; a steady stream (a router echoing a sensor bridge's own
+            # messages back) is then only counted, at debug
+            log.log(
+                logging.WARNING if n == 1 else logging.DEBUG,
                 "conn.%s: %d so far (ignored %s from %d/%d; the autopilot is %s/%s)",
                 name,
                 n,

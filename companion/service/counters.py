@@ -57,6 +57,10 @@ PROBLEM_PREFIXES = (
 )
 """Counters whose growth is logged as a warning (housekeeping, every 10 s)."""
 
+WARN_ONCE = ("conn.other_component", "conn.other_system")
+"""Problems that can be a steady, harmless stream (a router sending the companion's
+neighbours' messages back): their first growth is a warning, later growth debug."""
+
 
 def is_problem(name: str) -> bool:
     """True for a counter whose growth means something went wrong."""
@@ -102,8 +106,17 @@ class ProblemReporter:
         for name, value in values.items():
             prev = self._snapshot.get(name, 0)
             if value > prev and is_problem(name):
-                log.warning("%s: +%d (total %d)", name, value - prev, value)
+                once = name.startswith(WARN_ONCE) and prev > 0
+                level = logging.DEBUG if once else logging.WARNING
+                log.log(level, "%s: +%d (total %d)", name, value - prev, value)
         self._snapshot = values
 
 
-__all__ = ["PROBLEM_PREFIXES", "ProblemReporter", "ServiceCounters", "collect", "is_problem"]
+__all__ = [
+    "PROBLEM_PREFIXES",
+    "WARN_ONCE",
+    "ProblemReporter",
+    "ServiceCounters",
+    "collect",
+    "is_problem",
+]

@@ -103,6 +103,8 @@ class ControlCycle:
         self.health = Health.BOOT
         self.last_verdict = Assessment(Verdict.STOP, "starting")
         self.last_kind: str | None = None
+        self.last_decision: str | None = None
+        """The planner's decision in the last cycle it ran (None before it has run)."""
         self.last_cycle_wall: float | None = None
         self._text_id = 0
 
@@ -173,6 +175,8 @@ class ControlCycle:
         self.health = self._health(verdict.verdict, priming)
         self.last_verdict = verdict
         self.last_kind = sp_kind
+        if result is not None:
+            self.last_decision = str(result.diagnostics.decision)
         self.send_texts(now)
         if self.flight_log is not None:
             self.flight_log.write(self._record(now, verdict, result, sp, sp_kind, events))

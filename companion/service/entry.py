@@ -9,6 +9,7 @@ import signal
 import sys
 from collections.abc import Mapping
 from pathlib import Path
+from typing import TextIO
 
 from companion.config import ConfigError, load_config
 from companion.service.link import open_link
@@ -26,6 +27,49 @@ def configure_logging(level: str, environ: Mapping[str, str] | None = None) -> N
     logging.basicConfig(level=level.upper(), format=fmt, stream=sys.stderr, force=True)
 
 
+class TerminalStatus(logging.Filter):
+    """The status line on a terminal: one line rewritten in place (carriage return, erase
+    to end of line), cut to the terminal's width; a log line first erases it, and the next
+    status call draws it again below. Install with `attach()`; `close()` ends the line."""
+
+    def __init__(self, stream: TextIO, width: int = 120) -> None:
+        super().__init__()
+        self.stream = stream
+        self.width = width
+        self.showing = False
+
+    def __call__(self, text: str) -> None:
+        self.stream.write("\r\x1b[K" + text[: max(10, self.width - 1)])
+        self.stream.flush()
+        self.showing = True
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        if self.showing:
+            self.stream.write("\r\x1b[K")
+            self.showing = False
+        return True
+
+    def attach(self) -> None:
+        for handler in logging.getLogger().handlers:
+            handler.addFilter(self)
+
+    def close(self) -> None:
+        if self.showing:
+            self.stream.write("\n")
+            self.stream.flush()
+            self.showing = False
+
+
+def terminal_status(quiet: bool, stream: TextIO | None = None) -> TerminalStatus | None:
+    """A `TerminalStatus` on stderr when it is a terminal and not `quiet`, else None."""
+    import shutil
+
+    out = sys.stderr if stream is None else stream
+    if quiet or not out.isatty():
+        return None
+    return TerminalStatus(out, shutil.get_terminal_size((120, 24)).columns)
+
+
 async def run_with_signals(service: Service) -> int:
     """`service.run()` with SIGTERM/SIGINT as `service.stop()`."""
     loop = asyncio.get_running_loop()
@@ -35,11 +79,17 @@ async def run_with_signals(service: Service) -> int:
     return await service.run()
 
 
-def main(config_path: Path, connection: str | None = None, log_level: str | None = None) -> int:
+def main(
+    config_path: Path,
+    connection: str | None = None,
+    log_level: str | None = None,
+    quiet: bool = False,
+) -> int:
     """`companion run --config FILE`: exit 0 on SIGTERM/SIGINT, 2 on a bad config, 3 when the
     link's port cannot be had (in use), 1 on another error.
 
-    connection, log_level: the command line's `--connection` and `--log-level`.
+    connection, log_level: the command line's `--connection` and `--log-level`; quiet: no
+    status line on a terminal (`--quiet`; there is none when stderr is not a terminal).
     """
     try:
         cfg = load_config(Path(config_path), connection)
@@ -50,7 +100,15 @@ def main(config_path: Path, connection: str | None = None, log_level: str | None
         return 2
     configure_logging(log_level or cfg.logging.level)
     service = Service(cfg, open_link(cfg.link.spec))
-    return asyncio.run(run_with_signals(service))
+    status = terminal_status(quiet)
+    if status is not None:
+        status.attach()
+        service.status_sink = status
+    try:
+        return asyncio.run(run_with_signals(service))
+    finally:
+        if status is not None:
+            status.close()
 
 
-__all__ = ["configure_logging", "main", "run_with_signals"]
+__all__ = ["TerminalStatus", "configure_logging", "main", "run_with_signals", "terminal_status"]

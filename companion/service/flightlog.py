@@ -63,6 +63,30 @@ def clean(value: Any) -> Any:
     return value
 
 
+def _plain(value: Any) -> Any:
+    """`json` hook for numpy values (finite ones; a non-finite one raises and `dumps_record`
+    falls back to `clean`)."""
+    if isinstance(value, np.ndarray):
+        return (
+            value.tolist()
+            if value.dtype.kind in "iub" or np.isfinite(value).all()
+            else clean(value)
+        )
+    if isinstance(value, np.generic):
+        return value.item()
+    raise TypeError(f"not JSON serialisable: {type(value).__name__}")
+
+
+def dumps_record(record: dict[str, Any]) -> str:
+    """One compact JSON line, the same text as `json.dumps(clean(record))`: encoded
+    directly when every float is finite and every key a str (the usual record), through
+    `clean` otherwise (non-finite floats become null)."""
+    try:
+        return json.dumps(record, separators=(",", ":"), allow_nan=False, default=_plain)
+    except (ValueError, TypeError):
+        return json.dumps(clean(record), separators=(",", ":"))
+
+
 class FlightLogWriter:
     """Buffered JSON-lines writer with size rotation and a bound on the files kept."""
 
@@ -88,7 +112,7 @@ class FlightLogWriter:
 
     def write(self, record: dict[str, Any]) -> None:
         self.records += 1
-        self._lines.append(json.dumps(clean(record), separators=(",", ":")))
+        self._lines.append(dumps_record(record))
         if len(self._lines) > 100_000:  # disk gone: keep memory bounded
             del self._lines[:-10_000]
             self.errors += 1

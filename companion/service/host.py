@@ -23,7 +23,7 @@ from typing import Any, Protocol
 import numpy as np
 
 from companion.config import ServiceConfig
-from companion.geo import GeoPoint, LocalFrame
+from companion.geo import GeoPoint
 from companion.planner.frames import attitude_ned_to_enu, wrap_pi
 from companion.planner.params import PlannerParams
 from companion.planner.route import Route
@@ -31,6 +31,7 @@ from companion.planner.sensors import SensorTable
 from companion.planner.types import FloatArray, Setpoint, StepResult, VehicleState
 from companion.service.clock import Clock
 from companion.service.flightlog import FlightLogWriter
+from companion.service.geodesy import TangentPlane
 from companion.service.mission import latlon_to_xy
 from companion.service.statustext import Severity
 from companion.service.telemetry import Telemetry
@@ -118,7 +119,7 @@ class PlannerHost:
         self.params: PlannerParams = cfg.planner.to_params()
         """The planner's parameters; `params.h_d_m` is H_d at run time (its one owner)."""
 
-        self.frame: LocalFrame | None = None
+        self.frame: TangentPlane | None = None
         self.frame_frozen = False
         self._frame_key: tuple[GeoPoint, int] | None = None
         self.route_source_points: FloatArray | None = None
@@ -171,7 +172,7 @@ class PlannerHost:
         if key == self._frame_key:
             return
         self._frame_key = key
-        self.frame = LocalFrame(origin)
+        self.frame = TangentPlane(origin)
         r = self.cfg.route
         if r.source == "config":
             if r.points is not None:
@@ -319,9 +320,11 @@ class PlannerHost:
                 }
             )
         self.counters["planner_starts"] += 1
+        x0, y0 = (round(float(v), 2) + 0.0 for v in route.base_points[0][:2])  # no "-0.00"
         log.info(
-            "planner started at %s with %d base points",
-            np.round(route.base_points[0], 2),
+            "planner started at E %.2f m, N %.2f m with %d base points",
+            x0,
+            y0,
             len(route.base_points) - 1,
         )
 

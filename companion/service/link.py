@@ -52,7 +52,10 @@ class LinkStats:
     chunks_out: int = 0
     bytes_out: int = 0
     send_dropped: int = 0
-    """Sends dropped: no peer yet, link down, or write buffer full."""
+    """Sends dropped: link down or write buffer full."""
+    send_no_peer: int = 0
+    """Sends before anyone has spoken to a listening link (normal until the autopilot's
+    first packet: not a problem, the service says it is waiting)."""
     oversized_dropped: int = 0
     errors: int = 0
     """Transport errors reported by the OS (ICMP unreachable, EIO, ...)."""
@@ -235,7 +238,7 @@ class UdpInLink(_UdpLink):
     def send(self, data: bytes) -> None:
         peer = self.peer
         if peer is None:
-            self.stats.send_dropped += 1
+            self.stats.send_no_peer += 1
             return
         self._sendto(data, peer)
 

@@ -27,7 +27,8 @@ import asyncio
 import contextlib
 import errno
 import logging
-from collections.abc import Coroutine
+import math
+from collections.abc import Callable, Coroutine
 from typing import Any
 
 from companion.config import ServiceConfig
@@ -52,7 +53,7 @@ from companion.service.link import Link
 from companion.service.modes import Ownership
 from companion.service.notify import SystemdNotifier
 from companion.service.signing import SigningKeyError, SigningState, load_key, timestamp_now
-from companion.service.status import PlannerState, SensorFreshness, ServiceStatus
+from companion.service.status import PlannerState, SensorFreshness, ServiceStatus, status_line
 from companion.service.statustext import Severity, StatusTexts
 from companion.service.supervisor import Supervisor
 from companion.service.telemetry import Telemetry
@@ -65,6 +66,10 @@ LINK_RETRY_S = 2.0
 """A link that cannot be opened yet (serial device missing, host unknown): retried this often."""
 _LINK_FATAL_ERRNOS = frozenset({errno.EADDRINUSE, errno.EACCES, errno.EADDRNOTAVAIL, errno.EPERM})
 COUNTERS_EVERY_S = 10.0
+TRIGGER_DEADLINE_PERIODS = 1.5
+RATE_BURST_PERIODS = 2.0
+"""Real time: the most cycle credit the loop may save up (periods)."""
+"""Real time: a cycle whose inputs do not all arrive runs this many periods after the last."""
 """Problem counters are logged, and the signing timestamp saved, this often (wall time)."""
 
 
@@ -92,6 +97,9 @@ class Service:
         self.cfg = config
         self.link = link
         self.notifier = notifier or SystemdNotifier()
+        self.status_sink: Callable[[str], None] | None = None
+        """Where the status line goes once a second (wall time), e.g. a terminal; systemd's
+        STATUS= gets the same text through the notifier once the autopilot is configured."""
         self.sim_time = config.control.time_source == "sim"
         if clock is None:
             clock = SimClock() if self.sim_time else MonotonicClock()
@@ -99,6 +107,15 @@ class Service:
         self.wall: Clock = wall if wall is not None else MonotonicClock()
         self.sensors = config.sensor_table()
         self.period_s = 1.0 / config.control.rate_hz
+        self._trigger: asyncio.Future[None] | None = None
+        """Set when the inputs the next cycle waits for have all arrived (real time only)."""
+        self._awaited: set[str | int] = set()
+        """Inputs the next cycle still waits for: "ATTITUDE", "GLOBAL_POSITION_INT" and
+        DISTANCE_SENSOR ids, each of those that streamed during the last cycle period."""
+        self._arrived: set[str | int] = set()
+        self._arrived_before: set[str | int] = set()
+        self._trigger_t = 0.0
+        """When the inputs of the awaited cycle were complete (service clock, s)."""
 
         ident = config.identity
         sid = ident.system_id if isinstance(ident.system_id, int) else 1
@@ -301,6 +318,10 @@ class Service:
 
         pts = host.route_source_points
         kind = cycle.last_kind
+        pos = tel.position
+        speed = None if pos is None else math.hypot(*pos.velocity_ned_mps)
+        seen = [r for r in tel.range_vector(now, max_age) if r > 0.0]  # NaN, 0: nothing
+        nearest = min(seen) if seen else None
         return ServiceStatus(
             t=now,
             health=cycle.health,
@@ -328,7 +349,23 @@ class Service:
             ),
             auto_start_busy=self.supervisor.auto_busy,
             counters=self.counter_values(),
+            speed_mps=speed,
+            nearest_m=None if nearest is None else float(nearest),
+            decision=cycle.last_decision,
         )
+
+    def _publish_status(self) -> None:
+        """The status line to the sink (every call) and to systemd (once configured: before
+        that the supervisor's own STATUS= words stand)."""
+        sink, notifier = self.status_sink, self.notifier
+        to_systemd = notifier.enabled and self.supervisor.configured
+        if sink is None and not to_systemd:
+            return
+        text = status_line(self.status())
+        if sink is not None:
+            sink(text)
+        if to_systemd:
+            notifier.status(text)
 
     # === setup and shutdown ================================================================
 
@@ -425,7 +462,9 @@ class Service:
             self.supervisor.autopilot_heartbeat(t_rx)
         tel = self.tel
         reboots, jumps = tel.reboots, tel.jumps_accepted
-        tel.update(msg, t_rx)
+        kind = tel.update(msg, t_rx)
+        if kind is not None and self._trigger is not None:
+            self._input_arrived(kind, msg)
         if tel.notices:
             for text in tel.notices:
                 self._say(text, Severity.ERROR)
@@ -462,7 +501,71 @@ class Service:
             self.conn.send(heartbeat_message(self.cycle.health))
             await asyncio.sleep(period)
 
+    def _input_arrived(self, kind: str, msg: MAVLinkMessage) -> None:
+        """An accepted input: when it completes what the next cycle waits for (the last
+        DISTANCE_SENSOR of a burst, or the ATTITUDE/position after them), wake the loop."""
+        key: str | int = int(msg.id) if kind == "DISTANCE_SENSOR" else kind
+        self._arrived.add(key)
+        trigger = self._trigger
+        if (
+            trigger is not None
+            and self._awaited
+            and not trigger.done()
+            and self._awaited <= self._arrived
+        ):
+            self._trigger_t = self.clock.now()
+            trigger.set_result(None)
+
     async def _cycle_loop(self) -> None:
+        """Real time: a cycle runs when the inputs it needs have arrived (see
+        `_input_arrived`), bounded by a credit of one period per cycle that accrues with time
+        up to RATE_BURST_PERIODS (over any span T the loop runs at most T * rate_hz + 1
+        cycles: it follows the inputs' jitter without ever running faster than rate_hz on
+        average), and at the latest TRIGGER_DEADLINE_PERIODS periods after the last when they
+        do not all come. A clock other than the computer's (a test's) keeps the plain
+        timer."""
+        if not isinstance(self.clock, MonotonicClock):
+            await self._timer_loop()
+            return
+        loop = asyncio.get_running_loop()
+        clock, period = self.clock, self.period_s
+        cap = RATE_BURST_PERIODS * period
+        credit, last = period, clock.now()
+        # when the cycle should have started (its inputs complete or its deadline, and the
+        # credit there): one ending more than a period after that is an overrun
+        due = last
+        while True:
+            start = clock.now()
+            late = start - due
+            # the rate bound: a cycle spends one period of credit, credit accrues with time
+            credit = min(credit + (start - last), cap) - period
+            last = start
+            # what streamed in each of the last two periods is what the next cycle waits
+            # for (a sensor slower than the loop is not waited for)
+            self._awaited = self._arrived & self._arrived_before
+            self._arrived_before, self._arrived = self._arrived, set()
+            self._trigger = trigger = loop.create_future()
+            self.cycle.safe_tick(start)
+            elapsed = clock.now() - start
+            if late + elapsed > period:
+                self.counters["cycle_overruns"] += 1
+            deadline = start + TRIGGER_DEADLINE_PERIODS * period
+            handle = loop.call_later(
+                max(TRIGGER_DEADLINE_PERIODS * period - elapsed, 0.0),
+                _resolve,
+                trigger,
+            )
+            await trigger
+            handle.cancel()
+            by_input = bool(self._awaited) and self._awaited <= self._arrived
+            self.counters["cycles_by_input" if by_input else "cycles_by_timer"] += 1
+            woken = self._trigger_t if by_input else deadline
+            due = max(min(woken, clock.now()), last + period - credit)
+            wait = period - (credit + (clock.now() - last))
+            if wait > 0.0:
+                await asyncio.sleep(wait)
+
+    async def _timer_loop(self) -> None:
         clock = self.clock
         next_t = clock.now()
         while True:
@@ -492,6 +595,7 @@ class Service:
             now = wall.now()
             if self._loop_healthy(now):
                 self.notifier.watchdog()
+            self._publish_status()
             if self.codec.signing_enabled:
                 self.codec.advance_signing_clock(timestamp_now())
                 if now - last_save >= COUNTERS_EVERY_S:
@@ -553,3 +657,8 @@ class Service:
 
 
 __all__ = ["EXIT_LINK", "Service", "ServiceCounters"]
+
+
+def _resolve(fut: asyncio.Future[None]) -> None:
+    if not fut.done():
+        fut.set_result(None)

@@ -81,6 +81,36 @@ class ServiceStatus:
     auto_start_busy: bool
     counters: Mapping[str, int]
     """Every counter by dotted name (as `counter_values()`)."""
+    speed_mps: float | None = None
+    """The vehicle's ground speed (norm of the reported velocity), m/s; None if unknown."""
+    nearest_m: float | None = None
+    """The nearest range any fresh sensor detects, m; None when nothing is detected."""
+    decision: str | None = None
+    """The planner's decision in the last cycle it ran."""
 
 
-__all__ = ["PlannerState", "SensorFreshness", "ServiceStatus"]
+def _f(value: float | None, unit: str) -> str:
+    return "-" if value is None else f"{value:.1f} {unit}"
+
+
+def status_line(st: ServiceStatus) -> str:
+    """One line of plain words for a terminal and systemd's STATUS=: mode, owner, flying
+    or holding (and why), H_d, speed, nearest obstacle, the planner's decision."""
+    if st.target_system is None:
+        return "waiting for autopilot heartbeat"
+    doing = f"holding: {st.hold_reason}" if st.holding else st.planner.value
+    if not st.holding and st.hold_reason and st.owner is not OwnState.ENGAGED:
+        doing = st.hold_reason
+    parts = [
+        f"mode {st.mode or '?'}",
+        st.owner.value,
+        doing,
+        f"H_d {st.h_d_m:.1f} m",
+        f"v {_f(st.speed_mps, 'm/s')}",
+        f"nearest {_f(st.nearest_m, 'm')}",
+        f"decision {st.decision or '-'}",
+    ]
+    return " | ".join(parts)
+
+
+__all__ = ["PlannerState", "SensorFreshness", "ServiceStatus", "status_line"]

@@ -24,6 +24,7 @@ via `reboots`, and a jump ahead a re-sync.
 
 from __future__ import annotations
 
+import bisect
 import logging
 import math
 from collections import Counter, deque
@@ -250,7 +251,10 @@ class Telemetry:
         self._last_boot_ms: dict[str, int] = {}
         self._clock_ref: float | None = None
         self._last_rx: dict[str, float] = {}
-        """The autopilot's boot clock minus the receipt clock, milliseconds."""
+        self._offset_ms: dict[str, float] = {}
+        """Per kind: its last accepted stamp minus its receipt time, milliseconds."""
+        self._offsets_sorted: list[float] = []
+        """The values of `_offset_ms`, sorted (kept so, one kind at a time)."""
         self._clock_candidates: list[_ClockCandidate] = []
         self._jump_since: float | None = None
         self._jump_dt = 0.0
@@ -299,8 +303,7 @@ class Telemetry:
                 if last is not None and time_boot_ms <= last:
                     self._count("out_of_order" if time_boot_ms < last else "duplicate")
                     return False
-                self._last_boot_ms[key] = time_boot_ms
-                self._last_rx[key] = t_rx
+                self._set_stamp(key, time_boot_ms, t_rx)
                 return True
             # the clock has just been agreed on: this stamp is judged by it like any other
             last = self._last_boot_ms.get(key)
@@ -313,17 +316,33 @@ class Telemetry:
         if last is not None and time_boot_ms <= last:
             self._count("out_of_order" if time_boot_ms < last else "duplicate")
             return False
+        self._set_stamp(key, time_boot_ms, t_rx)
+        return True
+
+    def _set_stamp(self, key: str, time_boot_ms: int, t_rx: float) -> None:
+        """Record a kind's last accepted stamp (ms) and its receipt time (s)."""
         self._last_boot_ms[key] = time_boot_ms
         self._last_rx[key] = t_rx
-        return True
+        off = time_boot_ms - t_rx * 1000.0
+        srt = self._offsets_sorted
+        old = self._offset_ms.get(key)
+        if old is not None:
+            del srt[bisect.bisect_left(srt, old)]
+        self._offset_ms[key] = off
+        bisect.insort(srt, off)
+
+    def _clear_stamps(self) -> None:
+        self._last_boot_ms.clear()
+        self._last_rx.clear()
+        self._offset_ms.clear()
+        self._offsets_sorted.clear()
 
     def _expected_stamp(self, t_rx: float) -> float | None:
         """The autopilot's clock now (ms) from every kind's last accepted stamp, or None."""
-        rx = self._last_rx
-        vals = sorted(
-            stamp + (t_rx - rx[k]) * 1000.0 for k, stamp in self._last_boot_ms.items() if k in rx
-        )
-        return vals[(len(vals) - 1) // 2] if vals else None
+        # the lower median of (stamp + time since its receipt) over the kinds: the offsets
+        # are kept sorted as they change, so this is O(1) per message, not a sort
+        srt = self._offsets_sorted
+        return srt[(len(srt) - 1) // 2] + t_rx * 1000.0 if srt else None
 
     def _candidate(self, key: str, off: float, back: bool) -> _ClockCandidate | None:
         """Add a stamp to the group of stamps it agrees with (a new one if none; at most
@@ -353,9 +372,9 @@ class Telemetry:
             return
         self._clock_ref = c.median_ms()
         cap = int(self._clock_ref + t_rx * 1000.0 + FUTURE_TOLERANCE_MS)
-        for k, v in self._last_boot_ms.items():
+        for k, v in list(self._last_boot_ms.items()):
             if v > cap:
-                self._last_boot_ms[k], self._last_rx[k] = cap, t_rx
+                self._set_stamp(k, cap, t_rx)
 
     def _clock_evidence(
         self, key: str, time_boot_ms: int, off: float, t_rx: float, back: bool
@@ -373,12 +392,10 @@ class Telemetry:
             self.counters, self.reboots = counters, reboots
         else:
             self._count("time_boot_resync", logging.WARNING, f" ({key})")
-            self._last_boot_ms.clear()
-            self._last_rx.clear()
+            self._clear_stamps()
         # the median: one odd stamp among the evidence does not set the clock
         self._clock_ref = c.median_ms()
-        self._last_rx[key] = t_rx
-        self._last_boot_ms[key] = time_boot_ms
+        self._set_stamp(key, time_boot_ms, t_rx)
         return True
 
     # -- messages ---------------------------------------------------------------------------
@@ -477,8 +494,7 @@ class Telemetry:
     def _unaccept_position(self, last: Position) -> None:
         """A position passed the stamp checks but is rejected: its kind's clock stays at the
         last accepted one."""
-        self._last_boot_ms["GLOBAL_POSITION_INT"] = last.time_boot_ms
-        self._last_rx["GLOBAL_POSITION_INT"] = last.t_rx
+        self._set_stamp("GLOBAL_POSITION_INT", last.time_boot_ms, last.t_rx)
 
     @staticmethod
     def _dt(last: Position, time_boot_ms: int, t_rx: float) -> float:
