@@ -150,13 +150,6 @@ def assert_flight(flight: SitlFlight) -> None:
     assert len(flight.track) > 100, "too few SITL positions to judge the flight"
 
 
-WIRED_STOP = (
-    "with four SITL flights side by side the wired path's late readings and ArduCopter's "
-    "overshoot of a decelerating target end the stop inside D_min (1.62 m; 2.45 m when flown "
-    "alone): the stop has no reaction allowance yet"
-)
-
-
 @pytest.mark.parametrize("name", ["paper", "wall", "pillars", "dead-end"])
 def test_flight_with_sensors_on_the_companion(runs: dict[str, Any], name: str) -> None:
     flight: SitlFlight = _get(runs, name)
@@ -179,7 +172,6 @@ def test_sensors_wired_to_the_autopilot_reach_the_planner(runs: dict[str, Any]) 
     assert flight.metrics["collisions"] == 0
 
 
-@pytest.mark.xfail(strict=False, reason=WIRED_STOP)
 def test_flight_with_sensors_wired_to_the_autopilot(runs: dict[str, Any]) -> None:
     assert_flight(_get(runs, "wired-wall"))
 
