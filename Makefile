@@ -45,12 +45,12 @@ simulate: $(STAMP)
 test: $(STAMP) lint typecheck pytest
 
 lint: $(STAMP)
-	$(BIN)/ruff check companion sim harness tests bench
-	$(BIN)/ruff format --check companion sim harness tests bench
+	$(BIN)/ruff check companion tests bench
+	$(BIN)/ruff format --check companion tests bench
 	$(BIN)/lint-imports
 
 typecheck: $(STAMP)
-	$(BIN)/mypy companion sim harness bench
+	$(BIN)/mypy companion bench
 
 pytest: $(STAMP)
 	$(BIN)/pytest -q

@@ -1,6 +1,7 @@
 """A closed-loop flight with a stopwatch on every part of the cycle.
 
-The same loop as `harness.closed_loop.run` (sense -> Planner.step -> vehicle model), minus the
+The same loop as `companion.harness.closed_loop.run` (sense -> Planner.step -> vehicle model),
+minus the
 trace, plus timing of each part and the two clearance queries the closed loop makes every
 cycle. Same inputs, so the same flight: the cycle count is checked against the real run by
 the simulator benchmark.
@@ -16,12 +17,12 @@ from pathlib import Path
 import numpy as np
 
 from bench.report import REPO
+from companion.harness.closed_loop import sense
 from companion.planner import Decision, Planner, VehicleState
 from companion.planner.types import FloatArray
-from harness.closed_loop import sense
-from sim.scenario import Scenario, load_scenario
-from sim.vehicle import make_vehicle
-from sim.world import World
+from companion.sim.scenario import Scenario, load_scenario
+from companion.sim.vehicle import make_vehicle
+from companion.sim.world import World
 
 SCENARIO_DIR = REPO / "config" / "scenarios"
 

@@ -29,7 +29,7 @@ from companion.planner import SEARCH_BUDGET_UNITS
 from companion.planner.decision import decide, steepness, thresholds
 from companion.planner.rotations import r_g
 from companion.planner.sensors import SURFACE_FOR_GROUP, Group, range_points_world
-from sim.scenario import Scenario
+from companion.sim.scenario import Scenario
 
 
 def equations_floor_us(scenario: Scenario, flight: Flight, replays: int = 5) -> float:

@@ -15,10 +15,10 @@ import numpy as np
 
 from bench.flight import Flight, load
 from bench.report import Section
+from companion.harness.closed_loop import run as closed_loop_run
 from companion.planner import VehicleState
 from companion.planner.rotations import r_g
-from harness.closed_loop import run as closed_loop_run
-from sim.world import HeightmapConfig, World, WorldConfig
+from companion.sim.world import HeightmapConfig, World, WorldConfig
 
 HEIGHTMAP_CELLS = 1000
 HEIGHTMAP_RES_M = 0.1

@@ -1,7 +1,8 @@
-"""The companion service over UDP loopback against sim/'s MAVLink simulator.
+"""The companion service over UDP loopback against companion/sim/'s MAVLink simulator.
 
 Three measurements, each the real service (`companion.service.Service`) talking MAVLink 2
-to the real simulator (`sim.mavlink`) in another process, flying the paper scenario with its
+to the real simulator (`companion.sim.mavlink`) in another process, flying the paper scenario
+with its
 11 range sensors (auto start, ArduPilot personality, flight log on):
 
 - real time: the simulator at 1x streams ATTITUDE, GLOBAL_POSITION_INT and the 11
@@ -44,12 +45,12 @@ from pymavlink.dialects.v20 import ardupilotmega as mavlink
 from bench.flight import SCENARIO_DIR
 from bench.report import REPO, Section, percentiles_us
 from companion.config import parse_config
+from companion.harness.fly import service_config
 from companion.service import Service
 from companion.service.link import Receiver, UdpOutLink
 from companion.service.notify import SystemdNotifier
-from harness.fly import service_config
-from sim.mavlink import SimServer
-from sim.scenario import Scenario, load_scenario
+from companion.sim.mavlink import SimServer
+from companion.sim.scenario import Scenario, load_scenario
 
 PAPER = SCENARIO_DIR / "paper.yaml"
 RATE_HZ = 50.0
@@ -268,7 +269,7 @@ async def realtime(seconds: float) -> dict[str, Any]:
     cores = _cores()
     service_core = cores[0] if len(cores) >= 2 else None
     sim = subprocess.Popen(
-        [sys.executable, "-m", "sim", *serve],
+        [sys.executable, "-m", "companion.sim", *serve],
         cwd=REPO,
         stdout=subprocess.DEVNULL,
         stderr=subprocess.DEVNULL,

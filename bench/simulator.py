@@ -1,6 +1,6 @@
-"""In-process simulator speed: the paper scenario through `harness.closed_loop.run` (world, range
-sensors, planner, vehicle model, trace and clearance metrics), as simulated seconds per wall
-second, with where a cycle's time goes (from the timed flight of `bench.flight`)."""
+"""In-process simulator speed: the paper scenario through `companion.harness.closed_loop.run`
+(world, range sensors, planner, vehicle model, trace and clearance metrics), as simulated
+seconds per wall second, with where a cycle's time goes (the timed flight of `bench.flight`)."""
 
 from __future__ import annotations
 
@@ -11,7 +11,7 @@ import numpy as np
 
 from bench.flight import Flight, load
 from bench.report import Section
-from harness.closed_loop import run as closed_loop_run
+from companion.harness.closed_loop import run as closed_loop_run
 
 
 def run(flight: Flight, runs: int = 3) -> Section:

@@ -2,7 +2,7 @@
 (a process pool of 2 workers, the default on this 2-core class of machine), and the same tasks
 in this process (1 worker) for the pool's speed-up measured in the same run.
 
-Each task is one seeded world flown in process (`sim.sweep.run_task`: generate the world,
+Each task is one seeded world flown in process (`companion.sim.sweep.run_task`: generate the world,
 ray-cast the layout's sensors, the planner, the ideal vehicle model, the metrics), the paper's
 sensor layout. Figures are wall-clock rates, so they move with the machine's load: compare the
 pool against the single worker of the same run, not against another day's figure.
@@ -13,7 +13,7 @@ from __future__ import annotations
 import time
 
 from bench.report import Section
-from harness.sweep import load_layout, run_local, tasks_for
+from companion.harness.sweep import load_layout, run_local, tasks_for
 
 WORKERS = 2
 

@@ -71,8 +71,8 @@ class ScenarioFile(InputFile):
     what = "scenario"
 
     def preflight(self, path: Path) -> None:
-        from sim.scenario import ScenarioError, load_scenario
-        from sim.world import World
+        from companion.sim.scenario import ScenarioError, load_scenario
+        from companion.sim.world import World
 
         try:
             scenario = load_scenario(path)
@@ -213,8 +213,8 @@ def _parser() -> argparse.ArgumentParser:
     sweep = sub.add_parser(
         "sweep",
         help="fly many seeded random worlds (seeds x layouts x vehicles) and summarise",
-        description="Fly seeded random worlds (sim/worldgen) in process, in parallel, and "
-        "write results.csv (row by row), summary.txt, failures.txt and, per failure, its "
+        description="Fly seeded random worlds (companion.sim.worldgen) in process, in parallel, "
+        "and write results.csv (row by row), summary.txt, failures.txt and, per failure, its "
         "scenario file and figures. See docs/scenarios.md.",
     )
     sweep.add_argument(
@@ -333,8 +333,8 @@ def main(argv: Sequence[str] | None = None) -> int:
 
             return check_config(args.config, connection=args.connection)
         if args.command == "simulate":
-            from harness.runner import simulate
-            from sim.scenario import ScenarioError
+            from companion.harness.runner import simulate
+            from companion.sim.scenario import ScenarioError
 
             try:
                 code = simulate(args.scenario, args.out, plots=not args.no_plots, stream=text)
@@ -345,7 +345,13 @@ def main(argv: Sequence[str] | None = None) -> int:
                 _print_metrics_json(args.out)
             return code
         if args.command == "sweep":
-            from harness.sweep import DEFAULT_LAYOUTS, VEHICLES, SweepError, SweepOptions, sweep
+            from companion.harness.sweep import (
+                DEFAULT_LAYOUTS,
+                VEHICLES,
+                SweepError,
+                SweepOptions,
+                sweep,
+            )
 
             def items(values: list[str] | None, default: tuple[str, ...]) -> tuple[str, ...]:
                 if not values:
@@ -370,12 +376,12 @@ def main(argv: Sequence[str] | None = None) -> int:
                 print(f"error: {exc}", file=sys.stderr)
                 return 2
         if args.command == "report":
-            from harness.fly import report
+            from companion.harness.fly import report
 
             return report(args.log, args.out, args.scenario, plots=not args.no_plots)
         if args.command == "fly":
-            from harness.fly import fly
-            from sim.scenario import ScenarioError
+            from companion.harness.fly import fly
+            from companion.sim.scenario import ScenarioError
 
             try:
                 code = fly(

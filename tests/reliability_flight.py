@@ -1,4 +1,4 @@
-"""Fault flights for the reliability suite: the real service against sim/'s MAVLink simulator.
+"""Fault flights for the reliability suite: the real service against the bundled MAVLink simulator.
 
 `fly_fault(name, seed)` flies a short scenario (a hill and a pillar beside the route) through
 the companion service over UDP loopback in lockstep with one fault from `FAULTS` injected, and
@@ -27,14 +27,14 @@ from typing import Any
 import numpy as np
 
 from companion.config import ServiceConfig
+from companion.harness.fly import service_config
 from companion.service import Service
 from companion.service.flightlog import iter_records
 from companion.service.link import UdpOutLink
 from companion.service.notify import SystemdNotifier
-from harness.fly import service_config
-from sim.mavlink import SimServer
-from sim.scenario import Scenario
-from sim.world import World
+from companion.sim.mavlink import SimServer
+from companion.sim.scenario import Scenario
+from companion.sim.world import World
 
 SENSORS_FILE = Path(__file__).resolve().parents[1] / "config" / "sensors" / "paper-11.yaml"
 
@@ -406,7 +406,9 @@ if __name__ == "__main__":
     import argparse
     import logging
 
-    ap = argparse.ArgumentParser(description="fault sweep against sim/ (see docs/reliability.md)")
+    ap = argparse.ArgumentParser(
+        description="fault sweep against the bundled simulator (see docs/reliability.md)"
+    )
     ap.add_argument("--personality", default="ardupilot")
     ap.add_argument("--seeds", type=int, default=20)
     ap.add_argument("--faults", default="")

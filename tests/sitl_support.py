@@ -23,8 +23,8 @@ import yaml
 from pymavlink import mavutil
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
-from harness.sitl import Flight, Sitl, SitlFlight, find_sitl, fly_on_sitl, free_udp_port
-from sim.scenario import Scenario, load_scenario
+from companion.harness.sitl import Flight, Sitl, SitlFlight, find_sitl, fly_on_sitl, free_udp_port
+from companion.sim.scenario import Scenario, load_scenario
 
 LAUNCHER = find_sitl()
 SKIP_REASON = (

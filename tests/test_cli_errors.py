@@ -96,14 +96,14 @@ def no_work(monkeypatch: pytest.MonkeyPatch) -> None:
         raise AssertionError("the command started its work on bad input")
 
     import companion.config
+    import companion.harness.fly
+    import companion.harness.runner
     import companion.service
-    import harness.fly
-    import harness.runner
 
     for module, name in [
-        (harness.runner, "simulate"),
-        (harness.fly, "fly"),
-        (harness.fly, "report"),
+        (companion.harness.runner, "simulate"),
+        (companion.harness.fly, "fly"),
+        (companion.harness.fly, "report"),
         (companion.service, "main"),
         (companion.config, "check_config"),
     ]:

@@ -10,8 +10,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from harness.fly import fly_async
-from sim.scenario import load_scenario
+from companion.harness.fly import fly_async
+from companion.sim.scenario import load_scenario
 
 pytestmark = [pytest.mark.sim, pytest.mark.slow, pytest.mark.timeout(180)]
 
@@ -37,7 +37,7 @@ def test_paper_through_the_service(autopilot: str, tmp_path: Path) -> None:
 
 
 def test_report_turns_the_flight_log_into_the_same_plots(tmp_path: Path) -> None:
-    from harness.fly import report
+    from companion.harness.fly import report
 
     scenario = load_scenario(SCENARIOS / "smooth-hill.yaml")
     flown = asyncio.run(fly_async(scenario, SCENARIOS, tmp_path / "fly", "ardupilot"))

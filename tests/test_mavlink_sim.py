@@ -19,8 +19,8 @@ import pytest
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
 from companion.planner.sensors import boresight_from_quaternion_frd
-from sim.mavlink import ThreadedSim
-from sim.mavlink.setpoints import ACC_IGNORE, VEL_IGNORE, YAW_IGNORE, YAW_RATE_IGNORE
+from companion.sim.mavlink import ThreadedSim
+from companion.sim.mavlink.setpoints import ACC_IGNORE, VEL_IGNORE, YAW_IGNORE, YAW_RATE_IGNORE
 from tests.test_mavlink_sim_support import (
     Client,
     enu_of,
@@ -460,9 +460,9 @@ def test_link_cut_and_reboot_command() -> None:
 
 
 def test_from_scenario_with_the_real_world() -> None:
-    from sim.mavlink import SimServer
+    from companion.sim.mavlink import SimServer
 
-    load_scenario = pytest.importorskip("sim.scenario").load_scenario
+    load_scenario = pytest.importorskip("companion.sim.scenario").load_scenario
 
     path = Path(__file__).resolve().parent.parent / "config/scenarios/smooth-hill.yaml"
     scenario = load_scenario(path)
@@ -481,12 +481,15 @@ def test_from_scenario_with_the_real_world() -> None:
 
 def test_cli_help() -> None:
     out = subprocess.run(
-        [sys.executable, "-m", "sim", "serve", "--help"], capture_output=True, text=True, check=True
+        [sys.executable, "-m", "companion.sim", "serve", "--help"],
+        capture_output=True,
+        text=True,
+        check=True,
     ).stdout
     for option in ("--personality", "--speedup", "--lockstep", "--port", "--target"):
         assert option in out
     out = subprocess.run(
-        [sys.executable, "-m", "sim", "bridge", "--help"],
+        [sys.executable, "-m", "companion.sim", "bridge", "--help"],
         capture_output=True,
         text=True,
         check=True,
@@ -495,12 +498,21 @@ def test_cli_help() -> None:
 
 
 def test_cli_serves_a_scenario(tmp_path: Path) -> None:
-    pytest.importorskip("sim.scenario")
+    pytest.importorskip("companion.sim.scenario")
     scenario = Path(__file__).resolve().parent.parent / "config/scenarios/smooth-hill.yaml"
     truth = tmp_path / "truth.csv"
     args = ["serve", str(scenario), "--port", "0", "--speedup", "inf", "--duration", "0.5"]
     result = subprocess.run(
-        [sys.executable, "-m", "sim", *args, "--personality", "px4", "--truth-csv", str(truth)],
+        [
+            sys.executable,
+            "-m",
+            "companion.sim",
+            *args,
+            "--personality",
+            "px4",
+            "--truth-csv",
+            str(truth),
+        ],
         capture_output=True,
         text=True,
         timeout=60,
@@ -510,7 +522,9 @@ def test_cli_serves_a_scenario(tmp_path: Path) -> None:
     rows = truth.read_text().splitlines()
     assert rows[0].startswith("t_s,x_m") and len(rows) == 52
     bad = subprocess.run(
-        [sys.executable, "-m", "sim", *args, "--physics-dt", "0.5"], capture_output=True, text=True
+        [sys.executable, "-m", "companion.sim", *args, "--physics-dt", "0.5"],
+        capture_output=True,
+        text=True,
     )
     assert bad.returncode == 2 and "physics_dt_s" in bad.stderr
 

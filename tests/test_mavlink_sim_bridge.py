@@ -9,8 +9,8 @@ from typing import Any
 import pytest
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
-from sim.mavlink.bridge import SensorBridge
-from sim.mavlink.config import BridgeConfig
+from companion.sim.mavlink.bridge import SensorBridge
+from companion.sim.mavlink.config import BridgeConfig
 from tests.test_mavlink_sim_support import PlaneAndWall, make_server, sensors
 
 pytestmark = [pytest.mark.sim, pytest.mark.timeout(30)]

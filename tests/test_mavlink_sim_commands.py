@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
-from sim.mavlink import ThreadedSim
+from companion.sim.mavlink import ThreadedSim
 from tests.test_mavlink_sim_support import Client, make_server
 
 pytestmark = [pytest.mark.sim, pytest.mark.timeout(60)]

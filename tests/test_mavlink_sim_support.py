@@ -19,10 +19,10 @@ from pymavlink.dialects.v20 import ardupilotmega as mavlink
 from companion.geo import GeoPoint, LocalFrame
 from companion.planner.sensors import SensorSpec
 from companion.planner.types import FloatArray, Setpoint, VehicleState
+from companion.sim.mavlink import MavlinkSimConfig, SimServer
+from companion.sim.vehicle import IdealTracker
+from companion.sim.world import World, WorldConfig
 from companion.tuning import SensorConfig
-from sim.mavlink import MavlinkSimConfig, SimServer
-from sim.vehicle import IdealTracker
-from sim.world import World, WorldConfig
 
 
 class PlaneAndWall:
@@ -159,7 +159,7 @@ def enu_of(frame: LocalFrame, msg: Any) -> FloatArray:
 
 
 def yaw_ignore_pos_only() -> int:
-    from sim.mavlink.setpoints import ACC_IGNORE, VEL_IGNORE, YAW_IGNORE, YAW_RATE_IGNORE
+    from companion.sim.mavlink.setpoints import ACC_IGNORE, VEL_IGNORE, YAW_IGNORE, YAW_RATE_IGNORE
 
     return VEL_IGNORE | ACC_IGNORE | YAW_IGNORE | YAW_RATE_IGNORE
 

@@ -18,16 +18,16 @@ from companion.planner.frames import yaw_enu_to_ned
 from companion.planner.rotations import r_g
 from companion.planner.sensors import boresight_from_quaternion_frd
 from companion.planner.types import VehicleState
-from sim.mavlink import MavlinkSimConfig, SimServer
-from sim.mavlink.autopilot import Autopilot
-from sim.mavlink.bridge import BridgeCore
-from sim.mavlink.config import BridgeConfig, LinkFaultConfig, SensorFaultConfig
-from sim.mavlink.control import ReferenceShaper
-from sim.mavlink.faults import LinkFaults, SensorFaults, fault_rngs
-from sim.mavlink.mission import RETRY_S, MissionItem, MissionServer
-from sim.mavlink.personality import ARDUCOPTER, PX4, Behaviour, px4_custom_mode
-from sim.mavlink.rangefinder import Rangefinders
-from sim.mavlink.setpoints import (
+from companion.sim.mavlink import MavlinkSimConfig, SimServer
+from companion.sim.mavlink.autopilot import Autopilot
+from companion.sim.mavlink.bridge import BridgeCore
+from companion.sim.mavlink.config import BridgeConfig, LinkFaultConfig, SensorFaultConfig
+from companion.sim.mavlink.control import ReferenceShaper
+from companion.sim.mavlink.faults import LinkFaults, SensorFaults, fault_rngs
+from companion.sim.mavlink.mission import RETRY_S, MissionItem, MissionServer
+from companion.sim.mavlink.personality import ARDUCOPTER, PX4, Behaviour, px4_custom_mode
+from companion.sim.mavlink.rangefinder import Rangefinders
+from companion.sim.mavlink.setpoints import (
     ACC_IGNORE,
     POS_IGNORE,
     VEL_IGNORE,
@@ -38,7 +38,7 @@ from sim.mavlink.setpoints import (
     decode_ardupilot,
     decode_px4,
 )
-from sim.mavlink.telemetry import MessageScheduler
+from companion.sim.mavlink.telemetry import MessageScheduler
 from tests.test_mavlink_sim_support import PlaneAndWall, make_server, sensors
 
 pytestmark = pytest.mark.timeout(30)

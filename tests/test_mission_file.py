@@ -1,5 +1,5 @@
-"""Mission files for the simulator (`python -m sim serve --mission FILE`): both formats, the
-home item per personality, one-line errors, and the service flying a loaded mission with
+"""Mission files for the simulator (`python -m companion.sim serve --mission FILE`): both formats,
+the home item per personality, one-line errors, and the service flying a loaded mission with
 `route.source: mission` against the simulator."""
 
 from __future__ import annotations
@@ -16,13 +16,13 @@ import pytest
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
 from companion.config import parse_config
+from companion.harness.fly import service_config
 from companion.service import Service
 from companion.service.link import UdpOutLink
 from companion.service.notify import SystemdNotifier
-from harness.fly import service_config
-from sim.mavlink import SimServer
-from sim.mavlink.missionfile import MissionFileError, load_mission
-from sim.scenario import load_scenario
+from companion.sim.mavlink import SimServer
+from companion.sim.mavlink.missionfile import MissionFileError, load_mission
+from companion.sim.scenario import load_scenario
 
 ROOT = Path(__file__).resolve().parents[1]
 WP = mavlink.MAV_CMD_NAV_WAYPOINT
@@ -105,7 +105,16 @@ def test_serve_refuses_a_bad_mission_file_before_it_starts(tmp_path: Path) -> No
     bad = tmp_path / "bad.waypoints"
     bad.write_text("QGC WPL 110\n0\t1\n", encoding="utf-8")
     scenario = ROOT / "config" / "scenarios" / "smooth-hill.yaml"
-    cmd = [sys.executable, "-m", "sim", "serve", str(scenario), "--port", "0", "--mission"]
+    cmd = [
+        sys.executable,
+        "-m",
+        "companion.sim",
+        "serve",
+        str(scenario),
+        "--port",
+        "0",
+        "--mission",
+    ]
     proc = subprocess.run(
         [*cmd, str(bad)], capture_output=True, text=True, timeout=120, check=False, cwd=ROOT
     )

@@ -35,4 +35,4 @@ def test_sdist_carries_what_the_tests_and_docs_use() -> None:
             "".join(p.read_text(encoding="utf-8") for p in (ROOT / "tests").glob("*.py")),
         )
     )
-    assert used <= grafted | included | {"companion", "sim", "harness"}, used - grafted
+    assert used <= grafted | included | {"companion"}, used - grafted

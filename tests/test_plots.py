@@ -12,11 +12,11 @@ from typing import Any
 import numpy as np
 import pytest
 
+from companion.harness.closed_loop import TRACE_COLUMNS
+from companion.harness.plots import PlotParams, write_figures
 from companion.planner.params import PlannerParams
 from companion.planner.route import Route
-from harness.closed_loop import TRACE_COLUMNS
-from harness.plots import PlotParams, write_figures
-from sim.world import World, WorldConfig
+from companion.sim.world import World, WorldConfig
 
 needs_matplotlib = pytest.mark.skipif(
     importlib.util.find_spec("matplotlib") is None, reason="matplotlib (plots extra) missing"
@@ -183,7 +183,7 @@ def test_import_has_no_matplotlib_side_effect() -> None:
 
 
 def test_nothing_detected_is_a_gap_not_a_distance() -> None:
-    from harness.plots import _detected
+    from companion.harness.plots import _detected
 
     got = _detected([0.0, 3.5, math.nan, 0.0, 1.2])
     assert np.isnan(got[[0, 2, 3]]).all()
@@ -193,7 +193,7 @@ def test_nothing_detected_is_a_gap_not_a_distance() -> None:
 def test_route_terrain_is_taken_at_the_vehicles_progress() -> None:
     """The profile's original-route terrain is on the flown path's axis: a box on the route
     shows up where the vehicle passes it, however far off the route the vehicle is."""
-    from harness.plots import _route_terrain_at_progress
+    from companion.harness.plots import _route_terrain_at_progress
 
     world = World.from_config(
         WorldConfig.model_validate(
@@ -216,7 +216,7 @@ def test_plan_labels_and_legend_hide_nothing() -> None:
     does not cover the goal or start marks."""
     from matplotlib.figure import Figure
 
-    from harness.plots import _place_plan_labels
+    from companion.harness.plots import _place_plan_labels
 
     fig = Figure(figsize=(12, 4), layout="constrained")
     ax = fig.add_subplot()

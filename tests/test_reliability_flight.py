@@ -1,4 +1,4 @@
-"""Faults in flight: the real service and planner against sim/ over UDP, lockstep.
+"""Faults in flight: the real service and planner against companion/sim/ over UDP, lockstep.
 
 One flight per fault here (seeds 1..17, one each), with what the service must do
 asserted from its flight log and counters, and on the TRUE trajectory (every physics tick)
@@ -94,7 +94,7 @@ def test_scheduled_faults_never_fall_between_ticks() -> None:
     """A fault at 13.7 s (tick times are k * 0.01 in floating point) happens, once."""
     import asyncio
 
-    from sim.mavlink import SimServer
+    from companion.sim.mavlink import SimServer
     from tests.reliability_flight import scenario
 
     async def run() -> list[str]:
@@ -114,8 +114,8 @@ def test_scheduled_faults_never_fall_between_ticks() -> None:
 def test_sim_position_jump_and_link_fault_windows() -> None:
     """The simulator's new faults: a position offset in a window (or for good), and link
     faults that apply only within their windows."""
-    from sim.mavlink.config import FaultsConfig, LinkFaultConfig
-    from sim.mavlink.faults import FaultSchedule, LinkFaults, fault_rngs
+    from companion.sim.mavlink.config import FaultsConfig, LinkFaultConfig
+    from companion.sim.mavlink.faults import FaultSchedule, LinkFaults, fault_rngs
 
     sched = FaultSchedule(
         FaultsConfig.model_validate(

@@ -5,10 +5,10 @@ from pathlib import Path
 
 import pytest
 
-from harness import metrics as metrics_mod
-from harness.closed_loop import run
-from sim.scenario import load_scenario
-from sim.world import World
+from companion.harness import metrics as metrics_mod
+from companion.harness.closed_loop import run
+from companion.sim.scenario import load_scenario
+from companion.sim.world import World
 
 SCENARIOS = sorted((Path(__file__).parent.parent / "config" / "scenarios").glob("*.yaml"))
 

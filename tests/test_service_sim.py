@@ -1,4 +1,4 @@
-"""The real service and planner against sim/'s MAVLink simulator over UDP loopback, lockstep."""
+"""The real service and planner against the bundled MAVLink simulator over UDP, lockstep."""
 
 from __future__ import annotations
 
@@ -15,8 +15,8 @@ from companion.service import Service
 from companion.service.link import UdpOutLink
 from companion.service.notify import SystemdNotifier
 
-sim_mavlink = pytest.importorskip("sim.mavlink")
-scenario_mod = pytest.importorskip("sim.scenario")
+sim_mavlink = pytest.importorskip("companion.sim.mavlink")
+scenario_mod = pytest.importorskip("companion.sim.scenario")
 
 pytestmark = [pytest.mark.sim, pytest.mark.timeout(60)]
 

@@ -1,6 +1,6 @@
 """The shipped service configs fly against the bundled simulator as their headers say:
 
-    python -m sim serve config/scenarios/smooth-hill.yaml [--personality px4] \
+    python -m companion.sim serve config/scenarios/smooth-hill.yaml [--personality px4] \
         --target 127.0.0.1:14540
     companion run --config config/sitl-copter.yaml   (or config/px4-sitl.yaml)
 
@@ -25,8 +25,8 @@ import pytest
 from companion.config import check_config, load_config
 from companion.service import Service, open_link
 from companion.service.notify import SystemdNotifier
-from sim.mavlink import SimServer
-from sim.scenario import load_scenario
+from companion.sim.mavlink import SimServer
+from companion.sim.scenario import load_scenario
 
 pytestmark = [pytest.mark.sim, pytest.mark.slow, pytest.mark.timeout(240)]
 
@@ -39,7 +39,8 @@ SIM_BUDGET_S = 150.0
 def _header_pairing(text: str) -> tuple[str, str]:
     """The scenario and personality the config's header pairs it with."""
     m = re.search(
-        r"python -m sim serve (\S+)((?: --personality \w+)?) --target 127.0.0.1:14540", text
+        r"python -m companion.sim serve (\S+)((?: --personality \w+)?) --target 127.0.0.1:14540",
+        text,
     )
     assert m is not None, "the config's header documents the simulator pairing"
     return m.group(1), (m.group(2).split()[-1] if m.group(2) else "ardupilot")

@@ -21,7 +21,7 @@ import numpy as np
 import pytest
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
-from harness.sitl import Sitl, SitlFlight, free_udp_port, sitl_params, start_heading_deg
+from companion.harness.sitl import Sitl, SitlFlight, free_udp_port, sitl_params, start_heading_deg
 from tests.sitl_support import (
     COPTER_MODE,
     LAUNCHER,
@@ -322,7 +322,7 @@ def test_guided_targets(claims: dict[str, Any]) -> None:
     assert f6["alt_above_home_m"] == pytest.approx(12.0, abs=0.5)
     assert f6["north_m"] == pytest.approx(10.0, abs=1.0)
     # LOITER while flying to a target 40 m north, then GUIDED again: the old target is gone,
-    # the vehicle holds where it is (as sim/ does: GUIDED starts at the stopping point)
+    # the vehicle holds where it is (as companion/sim/ does: GUIDED starts at the stopping point)
     re = claims["reenter"]
     assert claims["loiter"] == claims["guided_again"] == mavlink.MAV_RESULT_ACCEPTED
     assert abs(re["north_after_8s_m"] - re["north_at_loiter_m"]) < 3.0

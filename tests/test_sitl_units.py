@@ -8,8 +8,8 @@ import pytest
 import yaml
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
-from harness.sitl import _heartbeat_frames, start_heading_deg, wire_to_autopilot
-from sim.scenario import load_scenario
+from companion.harness.sitl import _heartbeat_frames, start_heading_deg, wire_to_autopilot
+from companion.sim.scenario import load_scenario
 
 ROOT = Path(__file__).resolve().parent.parent
 

@@ -12,8 +12,7 @@ import numpy as np
 import pytest
 
 from companion.cli import main
-from companion.tuning import SensorConfig
-from harness.sweep import (
+from companion.harness.sweep import (
     DEFAULT_LAYOUTS,
     FAULTS,
     RECORD_FIELDS,
@@ -29,8 +28,9 @@ from harness.sweep import (
     sweep,
     tasks_for,
 )
-from sim.scenario import load_scenario
-from sim.worldgen import WorldGenConfig, scenario
+from companion.sim.scenario import load_scenario
+from companion.sim.worldgen import WorldGenConfig, scenario
+from companion.tuning import SensorConfig
 
 # Tiny worlds (one obstacle motif, a 20-30 m route, 30-40 s flown) keep the default suite
 # short: these tests are about the sweep's machinery, whatever the planner makes of them. The
@@ -255,7 +255,7 @@ def load_scenario_sensors() -> list[SensorConfig]:
 @pytest.mark.timeout(1800)  # 840 s seen on a 2-core box with a load of 8; ~1 min when idle
 def test_ray_gives_the_process_pool_records() -> None:
     ray = pytest.importorskip("ray", reason="ray is not installed (pip install '.[ray]')")
-    from harness.sweep import run_ray
+    from companion.harness.sweep import run_ray
 
     tasks = _tasks(range(7))[:20]
     assert len(tasks) == 20

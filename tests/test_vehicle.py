@@ -11,7 +11,7 @@ from hypothesis import strategies as st
 from pydantic import ValidationError
 
 from companion.planner.types import Setpoint, VehicleState
-from sim.vehicle import (
+from companion.sim.vehicle import (
     IdealTracker,
     Multicopter,
     VehicleModelConfig,

@@ -12,7 +12,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from pydantic import ValidationError
 
-from sim.world import World, WorldConfig
+from companion.sim.world import World, WorldConfig
 
 
 def world(*features: dict[str, Any], ground_z_m: float = 0.0, **kwargs: Any) -> World:

@@ -6,8 +6,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from sim.world import BoxConfig, CylinderConfig, MesaConfig, World, WorldConfig
-from sim.world.features import SolidColumns, intersects
+from companion.sim.world import BoxConfig, CylinderConfig, MesaConfig, World, WorldConfig
+from companion.sim.world.features import SolidColumns, intersects
 
 
 def _world(seed: int, count: int = 12) -> World:

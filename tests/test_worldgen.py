@@ -1,4 +1,4 @@
-"""sim/worldgen: seeded worlds are reproducible, keep their guarantees and round-trip as YAML."""
+"""companion.sim.worldgen: seeded worlds are reproducible, keep their guarantees, load as YAML."""
 
 from __future__ import annotations
 
@@ -12,11 +12,10 @@ import pytest
 import yaml
 
 from companion.planner.sensors import Group, Role
-from companion.tuning import SensorConfig
-from sim.scenario import load_scenario
-from sim.vehicle import VehicleModelConfig
-from sim.world import BoxConfig, MesaConfig, World, WorldConfig
-from sim.worldgen import (
+from companion.sim.scenario import load_scenario
+from companion.sim.vehicle import VehicleModelConfig
+from companion.sim.world import BoxConfig, MesaConfig, World, WorldConfig
+from companion.sim.worldgen import (
     MOTIFS,
     WorldGenConfig,
     WorldGenError,
@@ -26,6 +25,7 @@ from sim.worldgen import (
     scenario,
     scenario_yaml,
 )
+from companion.tuning import SensorConfig
 
 SENSORS = Path(__file__).parent.parent / "config" / "sensors"
 SEEDS = range(50)

@@ -1,0 +1,192 @@
+"""The in-process closed loop: world -> range sensors -> planner -> vehicle model, per cycle.
+
+No MAVLink here; `companion fly` runs the same scenario over UDP. The trace holds one row
+per cycle (columns in TRACE_COLUMNS); metrics are computed from it by `companion.harness.metrics`.
+"""
+
+from __future__ import annotations
+
+import csv
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from companion.planner import Planner, StepResult, VehicleState
+from companion.planner.decision import thresholds as eq7_thresholds
+from companion.planner.rotations import r_g
+from companion.planner.sensors import SensorTable
+from companion.sim.scenario import Scenario
+from companion.sim.vehicle import make_vehicle
+from companion.sim.world import World
+
+TRACE_COLUMNS = (
+    "t",
+    "x",
+    "y",
+    "z",
+    "roll",
+    "pitch",
+    "yaw",
+    "xd",
+    "yd",
+    "zd",
+    "yaw_d",
+    "phi_d",
+    "phi_star_max",
+    "phi_star_threshold",
+    "decision",
+    "mode",
+    "side",
+    "min_range",
+    "clearance",
+    "height",
+    "speed_ref",
+    "speed_xd",
+    "segment",
+    "parameter",
+    "replanned",
+)
+
+
+STALL_BOX_M = 1.0
+"""`run(stall_stop_s=...)`: a vehicle that stays within a box this wide (m) has stalled."""
+
+
+@dataclass
+class RunResult:
+    trace: dict[str, np.ndarray]
+    phi_star: np.ndarray
+    """(cycles, obstacle sensors) phi_i* per sensor, radians."""
+    thresholds: np.ndarray
+    events: list[tuple[float, str]]
+    finished: bool
+    memory_xy: np.ndarray
+    step_time_s: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    """(cycles,) CPU time of each planner.step call (thread time: other load on the machine
+    does not count), seconds; not deterministic."""
+
+
+def sense(world: World, sensors: SensorTable, state: VehicleState) -> np.ndarray:
+    """True ranges of every sensor at the vehicle pose, metres; max range where nothing hit
+    (what an autopilot reports for "out of range")."""
+    rot = r_g(state.roll_rad, state.pitch_rad, state.yaw_rad)
+    dirs = sensors.boresights_flu @ rot.T
+    origins = np.broadcast_to(state.position_enu, dirs.shape)
+    ranges = world.raycast(origins, dirs, sensors.max_range_m)
+    return np.where(np.isfinite(ranges), ranges, sensors.max_range_m)
+
+
+def run(
+    scenario: Scenario,
+    world: World,
+    progress: Callable[[float, float], None] | None = None,
+    sensor_filter: Callable[[float, np.ndarray], np.ndarray] | None = None,
+    stall_stop_s: float | None = None,
+) -> RunResult:
+    """Fly the scenario in process until the goal is reached or duration_s has passed.
+
+    sensor_filter(t_s, true_ranges_m) -> ranges_m: what the planner reads instead of the true
+    ranges (sensor faults); None: the true ranges. stall_stop_s: also stop once the vehicle
+    has stayed within a 1 m box for this long (s) (None: never).
+    """
+    params = scenario.params()
+    sensors = scenario.sensor_table()
+    route = scenario.route_obj()
+    start = scenario.start(world)
+    planner = Planner(params, sensors, route, start)
+    initial = VehicleState(start, 0.0, 0.0, route.start_heading_rad)
+    vehicle = make_vehicle(scenario.vehicle, initial)
+    dt = scenario.dt_s
+    rows: dict[str, list[float | str]] = {c: [] for c in TRACE_COLUMNS}
+    phi_rows: list[np.ndarray] = []
+    events: list[tuple[float, str]] = []
+    step_times: list[float] = []
+    state = vehicle.state
+    prev_xd = np.array(start)
+    finished = False
+    steps = round(scenario.duration_s / dt)
+    goal = route.base_points[-1]
+    for k in range(steps):
+        t = (k + 1) * dt
+        ranges = sense(world, sensors, state)
+        if sensor_filter is not None:
+            ranges = sensor_filter(t, ranges)
+        t0 = time.thread_time()
+        result: StepResult = planner.step(state, ranges, dt)
+        step_times.append(time.thread_time() - t0)
+        sp, diag = result.setpoint, result.diagnostics
+        state = vehicle.step(sp, dt)
+        events.extend((t, e) for e in diag.events)
+        pos = state.position_enu
+        thr_idx = int(np.argmax(diag.phi_star_rad - diag.threshold_rad))
+        row: dict[str, float | str] = {
+            "t": t,
+            "x": pos[0],
+            "y": pos[1],
+            "z": pos[2],
+            "roll": state.roll_rad,
+            "pitch": state.pitch_rad,
+            "yaw": state.yaw_rad,
+            "xd": sp.position_enu[0],
+            "yd": sp.position_enu[1],
+            "zd": sp.position_enu[2],
+            "yaw_d": sp.yaw_rad,
+            "phi_d": sp.pitch_rad,
+            "phi_star_max": float(diag.phi_star_rad.max()),
+            "phi_star_threshold": float(diag.threshold_rad[thr_idx]),
+            "decision": diag.decision.value,
+            "mode": diag.mode.value,
+            "side": diag.side.value,
+            "min_range": diag.min_range_m,
+            "clearance": world.obstacle_distance(pos),
+            "height": world.surface_distance(pos),
+            "speed_ref": diag.speed_ref_mps,
+            "speed_xd": float(np.linalg.norm(sp.position_enu - prev_xd)) / dt,
+            "segment": diag.segment,
+            "parameter": diag.parameter,
+            "replanned": float(diag.replanned),
+        }
+        for c in TRACE_COLUMNS:
+            rows[c].append(row[c])
+        phi_rows.append(diag.phi_star_rad.copy())
+        prev_xd = np.array(sp.position_enu)
+        if progress is not None and k % 200 == 0:
+            progress(t, float(np.hypot(*(pos[:2] - goal))))
+        if diag.finished:
+            finished = True
+            break
+        if stall_stop_s is not None and k % 20 == 0 and t >= stall_stop_s:
+            window = rows["x"][-round(stall_stop_s / dt) :], rows["y"][-round(stall_stop_s / dt) :]
+            if np.ptp(window[0]) < STALL_BOX_M and np.ptp(window[1]) < STALL_BOX_M:
+                break
+    trace = {
+        c: np.array(v) if c not in ("decision", "mode", "side") else np.array(v, dtype=object)
+        for c, v in rows.items()
+    }
+    return RunResult(
+        trace=trace,
+        phi_star=np.array(phi_rows),
+        thresholds=eq7_thresholds(sensors.obstacle_groups, params),
+        events=events,
+        finished=finished,
+        memory_xy=planner.memory_points_xy,
+        step_time_s=np.array(step_times),
+    )
+
+
+def write_trace(path: Path, trace: dict[str, np.ndarray]) -> None:
+    """trace.csv: one row per cycle, columns TRACE_COLUMNS."""
+    n = len(trace["t"])
+    with path.open("w", newline="", encoding="utf-8") as fh:
+        writer = csv.writer(fh)
+        writer.writerow(TRACE_COLUMNS)
+        for i in range(n):
+            writer.writerow(
+                [
+                    v if isinstance(v := trace[c][i], str) else f"{float(v):.6g}"
+                    for c in TRACE_COLUMNS
+                ]
+            )

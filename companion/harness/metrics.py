@@ -1,0 +1,162 @@
+"""Metrics of a run, as the paper reports them (PAPER_NOTES, "Metrics").
+
+- min_clearance_m: min over the run of the true shortest distance from the vehicle to any
+  obstacle feature (features with obstacle: true).
+- max_abs_pitch_rad: max |pitch| of the vehicle; max_abs_phi_d_rad: max |phi_d|, the
+  desired pitch of eq. (4) (the paper's Fig. 7c). The two agree for the ideal tracker.
+- max_height_error_m: max |H - H_d|, H the true shortest distance from the vehicle to the
+  surface, counted once the vehicle has first settled within 0.15 m of H_d (the start height
+  is a scenario choice; `height_settle_time_s` says when that happened).
+- max_speed_error_mps: max |speed of X_d - reference speed| per cycle. The reference speed is
+  v_d except where the planner lowers it on purpose (tight curves, stops, the goal);
+  `min_reference_speed_mps` and `time_below_v_d_s` say how much that happened.
+- reached_goal, final_position_error_m, final_heading_error_rad: at the last cycle.
+- collisions: cycles below the surface or inside an obstacle.
+- decisions, replans, max_lateral_deviation_m (per named feature, lateral distance of the
+  flown path from the original route where the route passes that feature: its footprint,
+  or for a Gaussian hill its core, where it rises more than 5 % of its height).
+"""
+
+from __future__ import annotations
+
+import math
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+from companion.planner.frames import wrap_pi
+from companion.planner.path import project
+from companion.planner.route import Route
+from companion.sim.world import World
+
+if TYPE_CHECKING:
+    from companion.harness.closed_loop import RunResult
+    from companion.sim.scenario import Scenario
+
+SETTLE_BAND_M = 0.15
+
+
+def feature_sides(
+    route: Route, world: World, x: np.ndarray, y: np.ndarray
+) -> tuple[dict[str, float], dict[str, str]]:
+    """Per feature: max lateral deviation of the flown path (x, y) from the route over the
+    stretch of route beside the feature, and the side the path passed an obstacle on."""
+    poly = route.polyline()
+    s_flown, l_flown = project(poly, np.column_stack([x, y]))
+    deviation: dict[str, float] = {}
+    sides: dict[str, str] = {}
+    for info in world.features:
+        if info.polygon is None:
+            continue
+        outline = info.core if info.core is not None else info.polygon
+        s_feat, l_feat = project(poly, outline)
+        lo, hi = float(s_feat.min()), float(s_feat.max())
+        if hi - lo > 0.9 * route.length:  # a feature the whole route crosses says nothing
+            continue
+        near = (s_flown >= lo) & (s_flown <= hi)
+        if not near.any():
+            continue
+        deviation[info.name] = float(np.max(np.abs(l_flown[near])))
+        if info.obstacle:
+            centre = float(np.median(l_feat))
+            passed = float(np.median(l_flown[near]))
+            sides[info.name] = "left" if passed > centre else "right"
+    return deviation, sides
+
+
+def compute(
+    trace: dict[str, np.ndarray],
+    route: Route,
+    world: World,
+    h_d_m: float,
+    v_d_mps: float,
+    finished: bool,
+) -> dict[str, Any]:
+    """Metrics dictionary (JSON-ready) of one run."""
+    t = trace["t"]
+    x, y = trace["x"], trace["y"]
+    height_err = np.abs(trace["height"] - h_d_m)
+    settled = np.flatnonzero(height_err <= SETTLE_BAND_M)
+    first = int(settled[0]) if len(settled) else len(t)
+    goal = route.base_points[-1]
+    final_err = float(math.hypot(x[-1] - goal[0], y[-1] - goal[1]))
+    speed_err = np.abs(trace["speed_xd"] - trace["speed_ref"])
+    deviation, sides = feature_sides(route, world, x, y)
+    decisions = {
+        d: int(np.sum(trace["decision"] == d)) for d in ("vertical", "horizontal", "blocked")
+    }
+    dt = float(t[1] - t[0]) if len(t) > 1 else 0.0
+    collisions = int(
+        sum(1 for i in range(len(t)) if trace["height"][i] <= 0.0 or trace["clearance"][i] <= 0.0)
+    )
+    return {
+        "min_clearance_m": float(np.min(trace["clearance"])),
+        "max_abs_pitch_rad": float(np.max(np.abs(trace["pitch"]))),
+        "max_abs_phi_d_rad": float(np.nanmax(np.abs(trace["phi_d"]))),
+        "max_height_error_m": float(np.max(height_err[first:])) if first < len(t) else math.inf,
+        "height_settle_time_s": float(t[first]) if first < len(t) else math.inf,
+        "initial_height_error_m": float(height_err[0]),
+        "max_speed_error_mps": float(np.max(speed_err)),
+        "min_reference_speed_mps": float(np.min(trace["speed_ref"])),
+        "time_below_v_d_s": float(np.sum(trace["speed_ref"] < v_d_mps - 1e-6) * dt),
+        "reached_goal": bool(finished and final_err < 0.5),
+        "final_position_error_m": final_err,
+        "final_heading_error_rad": abs(
+            wrap_pi(float(trace["yaw"][-1]) - route.arrival_heading_rad)
+        ),
+        "collisions": collisions,
+        "duration_s": float(t[-1]),
+        "min_range_m": float(np.min(trace["min_range"][trace["min_range"] > 0]))
+        if np.any(trace["min_range"] > 0)
+        else 0.0,
+        "decisions": decisions,
+        "replans": int(np.sum(trace["replanned"])),
+        "max_lateral_deviation_m": deviation,
+        "passed_side": sides,
+    }
+
+
+def for_run(scenario: Scenario, world: World, result: RunResult) -> dict[str, Any]:
+    """`compute` with the scenario's route, H_d and v_d."""
+    return compute(
+        result.trace,
+        scenario.route_obj(),
+        world,
+        scenario.planner.h_d_m,
+        scenario.planner.v_d_mps,
+        result.finished,
+    )
+
+
+METRIC_ROWS = (
+    ("min_clearance_m", "min clearance to obstacles", "m"),
+    ("max_abs_phi_d_rad", "max |phi_d| (desired pitch)", "rad"),
+    ("max_abs_pitch_rad", "max |pitch| of the vehicle", "rad"),
+    ("max_height_error_m", "max |H - H_d| (settled)", "m"),
+    ("max_speed_error_mps", "max |v(X_d) - v_ref|", "m/s"),
+    ("reached_goal", "reached goal", ""),
+    ("final_position_error_m", "final position error", "m"),
+    ("final_heading_error_rad", "final heading error", "rad"),
+    ("collisions", "collisions (cycles)", ""),
+    ("replans", "re-plans", ""),
+    ("duration_s", "duration", "s"),
+)
+
+
+def format_table(metrics: dict[str, Any]) -> str:
+    """A plain-text table of the main metrics."""
+    lines = [f"{'metric':<34}{'value':>14}  unit", "-" * 54]
+    for key, label, unit in METRIC_ROWS:
+        v = metrics[key]
+        shown = f"{v:.4f}" if isinstance(v, float) else str(v)
+        lines.append(f"{label:<34}{shown:>14}  {unit}")
+    d = metrics["decisions"]
+    lines.append(
+        f"{'decisions v/h/blocked (cycles)':<34}"
+        f"{d['vertical']:>5}/{d['horizontal']}/{d['blocked']}".ljust(48)
+    )
+    for name, dev in metrics["max_lateral_deviation_m"].items():
+        side = metrics["passed_side"].get(name)
+        extra = f" (passed {side})" if side else ""
+        lines.append(f"{'lateral deviation at ' + name:<34}{dev:>14.4f}  m{extra}")
+    return "\n".join(lines)

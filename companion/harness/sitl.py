@@ -1,0 +1,687 @@
+"""A scenario flown by the companion service against the real ArduCopter SITL.
+
+Three parts, all on 127.0.0.1:
+- the SITL (`../shared/sitl/arducopter-sitl`, started here in its own process group): its
+  MAVLink stream (serial0) goes to the companion's UDP port; serial1 (TCP 5762 + 10 I) is
+  left to a ground station; the sensor bridge uses serial2 (TCP 5763 + 10 I);
+- the sensor bridge (`companion.sim.mavlink.bridge`), ray-casting the scenario's world at the pose
+  SITL reports. Topology `companion`: it sends DISTANCE_SENSOR straight to the companion as
+  ArduPilot would. Topology `autopilot`: it feeds SITL's MAVLink rangefinders (RNGFNDn_TYPE
+  10) and proximity sensor (PRX1_TYPE 2), and the companion reads what SITL re-publishes;
+- the service (`companion.service.Service`, monotonic clock, auto start).
+
+Frames: SITL's home sits at world (start x, y, terrain height there), so world ENU = start
++ ENU offset from home; the route points handed to the service are relative to home. SITL's
+own ground is flat at home altitude; the world's relief and obstacles exist in the sensors
+only. The truth used for the metrics is the pose SITL reports (GLOBAL_POSITION_INT and
+ATTITUDE, as received by the bridge), so the figures say how the real autopilot flew.
+
+Time: the service runs on the wall clock, so a flight takes its route length / v_d in wall
+seconds whatever SITL's speed-up; see docs/simulator.md for why flights use speed-up 1.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import math
+import os
+import signal
+import socket
+import subprocess
+import sys
+import tempfile
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Literal, TextIO
+
+import numpy as np
+import yaml
+from pymavlink.dialects.v20 import ardupilotmega as mavlink
+
+from companion.config import parse_config
+from companion.harness import metrics as metrics_mod
+from companion.harness.closed_loop import RunResult
+from companion.harness.fly import trace_from_log
+from companion.planner.sensors import (
+    MAV_SENSOR_ROTATION_CUSTOM,
+    SensorSpec,
+    mav_orientation_for_boresight,
+)
+from companion.service import Service
+from companion.service.flightlog import read_flight_log
+from companion.service.link import UdpInLink
+from companion.service.notify import SystemdNotifier
+from companion.sim.mavlink.bridge import SensorBridge
+from companion.sim.mavlink.config import BridgeConfig
+from companion.sim.scenario import Scenario, load_scenario
+from companion.sim.world import World
+
+Topology = Literal["companion", "autopilot"]
+
+SITL_DIR = Path("..") / "shared" / "sitl"
+"""Where the SITL lies, relative to the repository root."""
+
+PROXIMITY_ID_BASE = 10
+"""ArduPilot re-reports proximity sector k (orientation YAW_45 * k) as DISTANCE_SENSOR id 10+k."""
+MAX_RANGEFINDERS = 10
+CMAC = (-35.363261, 149.165230, 584.0)
+"""The launcher's default home (lat, lon deg, alt m AMSL)."""
+GOAL_RADIUS_M = 0.5
+SETTLE_AFTER_FINISH_S = 5.0
+"""After the route is done the vehicle holds at the goal; the flight goes on this long so
+that `reached_goal` is judged on where SITL's vehicle got to, not on its lag at the last
+planner cycle."""
+
+
+def repo_root() -> Path:
+    return Path(__file__).resolve().parents[2]
+
+
+def find_sitl(root: Path | None = None) -> Path | None:
+    """The launcher `../shared/sitl/arducopter-sitl` when it and the binary exist, else None."""
+    base = (root or repo_root()) / SITL_DIR
+    launcher = base / "arducopter-sitl"
+    if launcher.is_file() and (base / "arducopter").is_file():
+        return launcher.resolve()
+    return None
+
+
+def free_udp_port() -> int:
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+class SitlError(RuntimeError):
+    """SITL did not start or answer."""
+
+
+@dataclass
+class Sitl:
+    """One ArduCopter SITL process (its own process group; stop() kills the group).
+
+    instance: SITL's -I (serial1 TCP 5762 + 10 I, serial2 5763 + 10 I); give every SITL
+    running at once its own. port: the UDP port its MAVLink stream (serial0) is sent to.
+    params: extra parameters (name -> value) loaded at boot with the default ones.
+    """
+
+    launcher: Path
+    instance: int
+    port: int
+    speedup: float = 1.0
+    fast_ekf: bool = True
+    params: dict[str, float] = field(default_factory=dict)
+    workdir: Path | None = None
+    heading_deg: float | None = None
+    """Initial heading, degrees clockwise from north (the launcher's default home, CMAC)."""
+    proc: subprocess.Popen[bytes] | None = None
+    started_at: float = 0.0
+    _log: TextIO | None = None
+
+    @property
+    def gcs_port(self) -> int:
+        """TCP port of SERIAL1 (a ground station)."""
+        return 5762 + 10 * self.instance
+
+    @property
+    def bridge_port(self) -> int:
+        """TCP port of SERIAL2 (the sensor bridge)."""
+        return 5763 + 10 * self.instance
+
+    def command(self) -> list[str]:
+        cmd = [
+            str(self.launcher),
+            "--instance",
+            str(self.instance),
+            "--port",
+            str(self.port),
+            "--speedup",
+            f"{self.speedup:g}",
+        ]
+        if self.workdir is not None:
+            cmd += ["--workdir", str(self.workdir)]
+        if self.heading_deg is not None:
+            cmd += ["--home", f"{CMAC[0]},{CMAC[1]},{CMAC[2]},{self.heading_deg:g}"]
+        if self.fast_ekf:
+            cmd.append("--fast-ekf")
+        for name, value in self.params.items():
+            cmd += ["--param", f"{name}={value:g}"]
+        return cmd
+
+    def start(self) -> None:
+        if self.workdir is None:
+            self.workdir = Path(tempfile.mkdtemp(prefix=f"sitl-{self.instance}-"))
+        self.workdir = self.workdir.resolve()  # the launcher changes into it
+        self.workdir.mkdir(parents=True, exist_ok=True)
+        self._log = (self.workdir / "sitl.out").open("w", encoding="utf-8")
+        self.proc = subprocess.Popen(
+            self.command(),
+            stdout=self._log,
+            stderr=subprocess.STDOUT,
+            stdin=subprocess.DEVNULL,
+            start_new_session=True,  # its own process group, killed as a whole
+        )
+        self.started_at = time.monotonic()
+
+    def stop(self) -> None:
+        """SIGTERM to the process group, SIGKILL after 5 s; idempotent."""
+        proc = self.proc
+        if proc is not None and proc.poll() is None:
+            with contextlib.suppress(ProcessLookupError):
+                os.killpg(proc.pid, signal.SIGTERM)
+            try:
+                proc.wait(5.0)
+            except subprocess.TimeoutExpired:
+                with contextlib.suppress(ProcessLookupError):
+                    os.killpg(proc.pid, signal.SIGKILL)
+                proc.wait(5.0)
+        if self._log is not None:
+            self._log.close()
+            self._log = None
+
+    def output(self) -> str:
+        if self.workdir is None or not (self.workdir / "sitl.out").exists():
+            return ""
+        return (self.workdir / "sitl.out").read_text(encoding="utf-8", errors="replace")
+
+    def wait_heartbeat(self, timeout_s: float = 60.0) -> float:
+        """Block until a HEARTBEAT arrives on the serial0 UDP port; seconds since start.
+
+        Binds the port for the wait only: the companion takes it afterwards.
+        """
+        mav = mavlink.MAVLink(None)
+        mav.robust_parsing = True
+        deadline = time.monotonic() + timeout_s
+        with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+            s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+            s.bind(("127.0.0.1", self.port))
+            s.settimeout(0.5)
+            while time.monotonic() < deadline:
+                if self.proc is not None and self.proc.poll() is not None:
+                    raise SitlError(f"SITL exited ({self.proc.returncode}): {self.output()[-400:]}")
+                try:
+                    data = s.recv(65536)
+                except TimeoutError:
+                    panic = [ln for ln in self.output().splitlines() if "PANIC" in ln]
+                    if panic:  # SITL stops there without exiting
+                        raise SitlError(f"SITL failed to start: {panic[0]}") from None
+                    continue
+                for msg in mav.parse_buffer(data) or []:
+                    if msg.get_type() == "HEARTBEAT" and msg.get_srcComponent() == 1:
+                        return time.monotonic() - self.started_at
+        raise SitlError(f"no SITL heartbeat on udp 127.0.0.1:{self.port} in {timeout_s:.0f} s")
+
+    def wait_ready(self, timeout_s: float = 120.0, port: int | None = None) -> float:
+        """Block until SITL can fly GUIDED: a 3D GPS fix and an estimator with an absolute
+        horizontal position (EKF_STATUS_REPORT flags POS_HORIZ_ABS and PRED_POS_HORIZ_ABS).
+        Seconds since start. Asks over TCP `port` (default serial2) and disconnects after.
+
+        Before that, ArduCopter may accept DO_SET_MODE GUIDED and fall back to STABILIZE a
+        moment later (seen with --fast-ekf right after boot), or refuse it.
+        """
+        from pymavlink import mavutil
+
+        need = mavlink.EKF_POS_HORIZ_ABS | mavlink.EKF_PRED_POS_HORIZ_ABS
+        deadline = time.monotonic() + timeout_s
+        conn = None
+        while conn is None:
+            try:
+                conn = mavutil.mavlink_connection(
+                    f"tcp:127.0.0.1:{port or self.bridge_port}",
+                    source_system=1,
+                    source_component=mavlink.MAV_COMP_ID_USER1,
+                    autoreconnect=False,
+                )
+            except OSError:
+                if time.monotonic() >= deadline:
+                    raise SitlError("SITL's TCP port never opened") from None
+                time.sleep(0.2)
+        try:
+            fix = False
+            ekf = False
+            next_request = 0.0
+            while time.monotonic() < deadline:
+                if time.monotonic() >= next_request:
+                    next_request = time.monotonic() + 2.0
+                    for msg_id in (
+                        mavlink.MAVLINK_MSG_ID_GPS_RAW_INT,
+                        mavlink.MAVLINK_MSG_ID_EKF_STATUS_REPORT,
+                    ):
+                        conn.mav.command_long_send(
+                            1,
+                            1,
+                            mavlink.MAV_CMD_SET_MESSAGE_INTERVAL,
+                            0,
+                            msg_id,
+                            2e5,
+                            0,
+                            0,
+                            0,
+                            0,
+                            0,
+                        )
+                msg = conn.recv_match(
+                    type=["GPS_RAW_INT", "EKF_STATUS_REPORT"], blocking=True, timeout=0.5
+                )
+                if msg is None:
+                    continue
+                if msg.get_type() == "GPS_RAW_INT":
+                    fix = msg.fix_type >= 3
+                else:
+                    ekf = msg.flags & need == need
+                if fix and ekf:
+                    return time.monotonic() - self.started_at
+        finally:
+            conn.close()
+        raise SitlError(f"SITL not ready to fly in {timeout_s:.0f} s (GPS fix, EKF position)")
+
+    def __enter__(self) -> Sitl:
+        self.start()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.stop()
+
+
+# --- topology (a): sensors wired to the flight controller ----------------------------------
+
+
+@dataclass(frozen=True)
+class WiredSensors:
+    """SITL parameters making the sensors MAVLink rangefinders / proximity, and the sensor
+    table as the companion sees SITL's re-reports (ids and limits as SITL sends them)."""
+
+    params: dict[str, float]
+    companion_sensors: list[dict[str, Any]]
+    optional_ids: list[int]
+    """The proximity sectors: ArduPilot sends nothing for a sector that has never seen an
+    object in range, so the companion must take their absence as "nothing detected"."""
+
+
+def wire_to_autopilot(sensors: Sequence[Any]) -> WiredSensors:
+    """ArduPilot parameters for `sensors` (scenario SensorConfig) fed over MAVLink.
+
+    Horizontal sensors (orientation YAW_0..YAW_315) go to the proximity sensor (PRX1_TYPE 2,
+    re-reported as id 10 + sector); the others to rangefinders RNGFND1.. (TYPE 10, ORIENT =
+    the MAV_SENSOR_ORIENTATION, re-reported as id = instance - 1). ArduPilot tells MAVLink
+    rangefinders apart by orientation only, so two of them may not share one; a sensor with
+    no standard orientation (ROTATION_CUSTOM) cannot be wired and raises ValueError.
+    """
+    params: dict[str, float] = {}
+    table: list[dict[str, Any]] = []
+    used: set[int] = set()
+    n_rf = 0
+    for cfg in sensors:
+        spec: SensorSpec = cfg.to_spec()
+        orient = mav_orientation_for_boresight(spec.boresight_frd)
+        if orient == MAV_SENSOR_ROTATION_CUSTOM:
+            raise ValueError(
+                f"sensor {spec.sensor_id} ({spec.name}): ArduPilot's MAVLink rangefinders need "
+                "a standard MAV_SENSOR_ORIENTATION, not a custom rotation"
+            )
+        if orient in used:
+            raise ValueError(
+                f"sensor {spec.sensor_id} ({spec.name}): orientation {orient} is taken; "
+                "ArduPilot tells MAVLink rangefinders apart by orientation only"
+            )
+        used.add(orient)
+        entry = cfg.model_dump(exclude_none=True)
+        if orient <= mavlink.MAV_SENSOR_ROTATION_YAW_315:
+            params["PRX1_TYPE"] = 2
+            entry["id"] = PROXIMITY_ID_BASE + orient
+        else:
+            n_rf += 1
+            if n_rf > MAX_RANGEFINDERS:
+                raise ValueError(f"more than {MAX_RANGEFINDERS} rangefinders")
+            key = "RNGFND" + ("A" if n_rf == 10 else str(n_rf))
+            params[f"{key}_TYPE"] = 10
+            params[f"{key}_ORIENT"] = orient
+            params[f"{key}_MIN"] = spec.min_range_m
+            params[f"{key}_MAX"] = spec.max_range_m
+            entry["id"] = n_rf - 1
+        table.append(entry)
+    optional = [e["id"] for e in table if e["id"] >= PROXIMITY_ID_BASE]
+    return WiredSensors(params, table, optional)
+
+
+# --- the flight ----------------------------------------------------------------------------
+
+
+def _heartbeat_frames(data: bytes) -> list[bytes]:
+    """The MAVLink 2 HEARTBEAT frames in a datagram, found from the headers alone (cheap: the
+    service decodes everything anyway)."""
+    frames = []
+    i = 0
+    while i + 12 <= len(data):
+        if data[i] != 0xFD:
+            i += 1
+            continue
+        size = 12 + data[i + 1] + (13 if data[i + 2] & 1 else 0)
+        if data[i + 7] == 0 and data[i + 8] == 0 and data[i + 9] == 0:
+            frames.append(data[i : i + size])
+        i += size
+    return frames
+
+
+class TapLink(UdpInLink):
+    """UdpInLink that records what the service sends and the autopilot heartbeats it gets.
+
+    sent: (monotonic s, message type, command or custom_mode or None);
+    heartbeats: (monotonic s, custom_mode, armed) of the autopilot (component 1).
+    """
+
+    def __init__(self, host: str, port: int) -> None:
+        super().__init__(host, port)
+        self._out = mavlink.MAVLink(None)
+        self._in = mavlink.MAVLink(None)
+        self._out.robust_parsing = True
+        self._in.robust_parsing = True
+        self.sent: list[tuple[float, str, int | None]] = []
+        self.heartbeats: list[tuple[float, int, bool]] = []
+
+    def send(self, data: bytes) -> None:
+        now = time.monotonic()
+        for msg in self._out.parse_buffer(data) or []:
+            kind = msg.get_type()
+            detail = None
+            if kind in ("COMMAND_LONG", "COMMAND_INT"):
+                detail = int(msg.command)
+            elif kind == "SET_MODE":
+                detail = int(msg.custom_mode)
+            self.sent.append((now, kind, detail))
+        super().send(data)
+
+    def _deliver(self, data: bytes, peer: Any) -> None:
+        now = time.monotonic()
+        for frame in _heartbeat_frames(data):
+            for msg in self._in.parse_buffer(frame) or []:
+                if msg.get_type() == "HEARTBEAT" and msg.get_srcComponent() == 1:
+                    armed = bool(msg.base_mode & mavlink.MAV_MODE_FLAG_SAFETY_ARMED)
+                    self.heartbeats.append((now, int(msg.custom_mode), armed))
+        super()._deliver(data, peer)
+
+
+@dataclass
+class SitlFlight:
+    """What a flight on SITL produced. Times are monotonic seconds (the service's clock)."""
+
+    scenario: Scenario
+    topology: Topology
+    finished: bool
+    engaged_at: float | None
+    result: RunResult | None
+    metrics: dict[str, Any]
+    counters: dict[str, int]
+    track: np.ndarray
+    """(n, 7): t, x, y, z, roll, pitch, yaw of SITL's reported pose in the world frame."""
+    sent: list[tuple[float, str, int | None]]
+    heartbeats: list[tuple[float, int, bool]]
+    log_path: Path | None
+    statustexts: list[str]
+    wall_s: float
+
+
+def service_config(
+    scenario: Scenario,
+    port: int,
+    anchor_xy: np.ndarray,
+    log_dir: Path,
+    sensors: list[dict[str, Any]],
+    extra: dict[str, Any] | None = None,
+) -> Any:
+    """The service configuration flying `scenario` against SITL's stream on udp `port`."""
+    start_z = scenario.start_position[2] if scenario.start_position else scenario.planner.h_d_m
+    points = (np.array(scenario.route.points[1:], dtype=float) - anchor_xy).tolist()
+    raw: dict[str, Any] = {
+        "link": {"connection": f"udpin:127.0.0.1:{port}"},
+        "control": {
+            "rate_hz": 1.0 / scenario.dt_s,
+            "auto_start": {"enabled": True, "takeoff_alt_m": float(start_z)},
+        },
+        "route": {
+            "source": "config",
+            "points": points,
+            "arrival_heading_deg": scenario.route.arrival_heading_deg,
+        },
+        "planner": scenario.planner.model_dump(),
+        "sensors": sensors,
+        "logging": {"flight_log_dir": str(log_dir), "level": "warning"},
+    }
+    for key, value in (extra or {}).items():
+        raw[key] = {**raw.get(key, {}), **value}
+    return parse_config(raw)
+
+
+class Flight:
+    """Service + bridge against a started Sitl; `run()` flies until the route is done."""
+
+    def __init__(
+        self,
+        scenario: Scenario,
+        base_dir: Path,
+        sitl: Sitl,
+        out_dir: Path,
+        topology: Topology = "companion",
+        service_extra: dict[str, Any] | None = None,
+    ) -> None:
+        self.scenario = scenario
+        self.sitl = sitl
+        self.topology = topology
+        self.out_dir = out_dir
+        self.world = World.from_config(scenario.world, base_dir)
+        start = scenario.start(self.world)
+        self.anchor = np.array([start[0], start[1], float(self.world.height(start[0], start[1]))])
+        extra = dict(service_extra or {})
+        if topology == "autopilot":
+            wired = wire_to_autopilot(scenario.sensors)
+            sensors = wired.companion_sensors
+            fs = extra.get("failsafe", {})
+            extra["failsafe"] = {**fs, "optional_sensor_ids": wired.optional_ids}
+        else:
+            sensors = [s.model_dump(exclude_none=True) for s in scenario.sensors]
+        self.log_dir = out_dir / "flightlog"
+        self.cfg = service_config(
+            scenario, sitl.port, self.anchor[:2], self.log_dir, sensors, extra
+        )
+        # Rates in wall time: 10 Hz, twice what the service's 0.5 s sensor age limit needs
+        # (every DISTANCE_SENSOR costs the service a decode: 11 sensors at 20 Hz were half
+        # its CPU). ArduPilot drops a MAVLink rangefinder after 500 ms (simulated) without
+        # data, so it is fed at 10 Hz of simulated time.
+        rate = 10.0 * max(sitl.speedup, 1.0) if topology == "autopilot" else 10.0
+        bridge_cfg = BridgeConfig(
+            connect=f"tcp:127.0.0.1:{sitl.bridge_port}",
+            send_to=topology,
+            companion_address=f"127.0.0.1:{sitl.port}" if topology == "companion" else None,
+            rate_hz=rate,
+            system_id=1,
+            component_id=1 if topology == "companion" else 158,
+            anchor_xy=(float(self.anchor[0]), float(self.anchor[1])),
+        )
+        self.bridge = SensorBridge(bridge_cfg, self.world, [s.to_spec() for s in scenario.sensors])
+        self.bridge.core.track = []
+        self.link = TapLink("127.0.0.1", sitl.port)
+        self.service = Service(self.cfg, self.link, notifier=SystemdNotifier({}))
+        self.statustexts: list[str] = []
+        self._task: asyncio.Task[int] | None = None
+
+    @property
+    def engaged(self) -> bool:
+        return self.service.ownership.engaged
+
+    async def start(self) -> None:
+        await self.bridge.start()
+        self._bridge_task = asyncio.create_task(self.bridge.run())
+        self._task = asyncio.create_task(self.service.run())
+
+    async def wait(
+        self, timeout_s: float, until: Callable[[], bool] | None = None, poll_s: float = 0.2
+    ) -> bool:
+        """Wait until `until()` (default: route finished) or timeout; False on timeout."""
+        pred = until or self.service.route_finished.is_set
+        deadline = time.monotonic() + timeout_s
+        while not pred():
+            if self._task is not None and self._task.done():
+                raise RuntimeError(f"service stopped: {self._task.result()}")
+            if self.sitl.proc is not None and self.sitl.proc.poll() is not None:
+                raise SitlError(f"SITL exited: {self.sitl.output()[-400:]}")
+            if time.monotonic() >= deadline:
+                return False
+            await asyncio.sleep(poll_s)
+        return True
+
+    async def stop(self) -> None:
+        self.service.stop()
+        if self._task is not None:
+            with contextlib.suppress(Exception):
+                await asyncio.wait_for(self._task, 10.0)
+        self._bridge_task.cancel()
+        with contextlib.suppress(asyncio.CancelledError):
+            await self._bridge_task
+        await self.bridge.close()
+
+    def outcome(self, wall_s: float) -> SitlFlight:
+        track = np.array(self.bridge.core.track, dtype=float).reshape(-1, 7)
+        logs = sorted(self.log_dir.glob("flight-*.jsonl"))
+        log = read_flight_log(logs[-1]) if logs else None
+        result: RunResult | None = None
+        m: dict[str, Any] = {}
+        engaged_at = None
+        finished = self.service.route_finished.is_set()
+        if log is not None and len(track):
+            planner_rows = [i for i, k in enumerate(log.setpoint_kind) if k == "planner"]
+            if planner_rows:
+                engaged_at = float(log.t_s[planner_rows[0]])
+                result = trace_from_log(log, self.world, self.anchor, track[:, 0], track[:, 1:])
+                result.finished = finished
+                # times from the take-over on
+                result.trace["t"] = result.trace["t"] - engaged_at
+                result.events = [(t - engaged_at, e) for t, e in result.events]
+                m = metrics_mod.compute(
+                    result.trace,
+                    self.scenario.route_obj(),
+                    self.world,
+                    self.scenario.planner.h_d_m,
+                    self.scenario.planner.v_d_mps,
+                    finished,
+                )
+                goal = np.array(self.scenario.route.points[-1], dtype=float)
+                after = track[track[:, 0] >= float(log.t_s[planner_rows[-1]])]
+                if finished and len(after):
+                    d = np.hypot(after[:, 1] - goal[0], after[:, 2] - goal[1])
+                    m["goal_distance_m"] = float(d.min())
+                    m["reached_goal"] = bool(d.min() < GOAL_RADIUS_M)
+                m["phi_max_rad"] = self.scenario.planner.phi_max_rad
+                m["d_min_m"] = self.scenario.planner.d_min_m
+        texts = [e for _, e in result.events] if result is not None else []
+        return SitlFlight(
+            self.scenario,
+            self.topology,
+            finished,
+            engaged_at,
+            result,
+            m,
+            self.service.counter_values(),
+            track,
+            list(self.link.sent),
+            list(self.link.heartbeats),
+            logs[-1] if logs else None,
+            texts,
+            wall_s,
+        )
+
+
+async def fly_on_sitl(
+    scenario: Scenario,
+    base_dir: Path,
+    sitl: Sitl,
+    out_dir: Path,
+    topology: Topology = "companion",
+    timeout_s: float | None = None,
+) -> SitlFlight:
+    """Fly the scenario on a started SITL (heartbeat seen) until the route is done."""
+    t0 = time.monotonic()
+    flight = Flight(scenario, base_dir, sitl, out_dir, topology)
+    await flight.start()
+    try:
+        if await flight.wait(timeout_s if timeout_s is not None else scenario.duration_s + 90.0):
+            await asyncio.sleep(SETTLE_AFTER_FINISH_S)
+    finally:
+        await flight.stop()
+    return flight.outcome(time.monotonic() - t0)
+
+
+def start_heading_deg(scenario: Scenario) -> float:
+    """The scenario's start heading as SITL's home heading (compass degrees), so that the
+    vehicle boots facing the way the scenario starts, as `companion fly` starts it."""
+    return (90.0 - math.degrees(scenario.route_obj().start_heading_rad)) % 360.0
+
+
+def sitl_params(scenario: Scenario, topology: Topology) -> dict[str, float]:
+    """Parameters SITL boots with for this scenario and topology."""
+    if topology == "autopilot":
+        return dict(wire_to_autopilot(scenario.sensors).params)
+    return {}
+
+
+def run_cli(
+    scenario_path: Path,
+    out_dir: Path,
+    topology: Topology = "companion",
+    instance: int = 0,
+    speedup: float = 1.0,
+    fast_ekf: bool = True,
+    sensors_path: Path | None = None,
+    stream: TextIO = sys.stdout,
+) -> int:
+    """`python -m companion.harness sitl`: fly a scenario on the real SITL, print the metrics table.
+    sensors_path: a sensor table (YAML list) replacing the scenario's."""
+    launcher = find_sitl()
+    if launcher is None:
+        stream.write(f"error: no SITL at {SITL_DIR}/arducopter-sitl next to the repository\n")
+        return 2
+    scenario = load_scenario(scenario_path)
+    if sensors_path is not None:
+        with sensors_path.open(encoding="utf-8") as f:
+            table = yaml.safe_load(f)
+        scenario = Scenario.model_validate({**scenario.model_dump(), "sensors": table})
+    out_dir.mkdir(parents=True, exist_ok=True)
+    sitl = Sitl(
+        launcher,
+        instance,
+        free_udp_port(),
+        speedup=speedup,
+        fast_ekf=fast_ekf,
+        params=sitl_params(scenario, topology),
+        workdir=out_dir / "sitl",
+        heading_deg=start_heading_deg(scenario),
+    )
+    try:
+        with sitl:
+            sitl.wait_heartbeat()
+            boot = sitl.wait_ready()
+            flown = asyncio.run(
+                fly_on_sitl(scenario, scenario_path.parent, sitl, out_dir, topology)
+            )
+    except SitlError as exc:
+        stream.write(f"error: {exc} (SITL output: {sitl.workdir}/sitl.out)\n")
+        return 1
+    stream.write(
+        f"scenario {scenario.name} on ArduCopter SITL (speed-up {speedup:g}, "
+        f"{'EKF3' if not fast_ekf else 'fast EKF'}, sensors to the {topology}); ready after "
+        f"{boot:.1f} s, flight {flown.wall_s:.0f} s wall\n"
+    )
+    if flown.metrics:
+        stream.write(metrics_mod.format_table(flown.metrics) + "\n")
+        if "goal_distance_m" in flown.metrics:
+            stream.write(
+                f"closest to the goal after the route was done: "
+                f"{flown.metrics['goal_distance_m']:.2f} m (SITL's position)\n"
+            )
+    else:
+        stream.write("the service never took over\n")
+    for t, text in flown.result.events if flown.result is not None else []:
+        stream.write(f"  {t:8.2f} s  {text}\n")
+    return 0 if flown.metrics.get("reached_goal") else 1

@@ -1,0 +1,201 @@
+"""Raster acceleration of the distance queries: float32 samples of a height function in
+blocks with their maxima (a two-level branch-and-bound nearest-solid search), and the local
+refinement of a raster hit on the analytic height function. World ENU, metres.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any, NamedTuple
+
+import numpy as np
+from numpy.typing import NDArray
+
+from companion.planner.types import FloatArray
+from companion.sim.world.features import BBox, HeightFn
+
+
+class Raster:
+    """float32 samples of a height function on a regular grid, for nearest-solid searches.
+
+    Grid point (ix, iy) is at (x0 + ix*cell, y0 + iy*cell); -inf marks "no solid". Samples
+    are stored in B x B blocks with each block's maximum, for a two-level branch-and-bound
+    search: a block can hold the nearest point only if its lower bound beats the best
+    upper bound (the distance to the block's highest sample, or one given).
+    """
+
+    B = 8
+
+    def __init__(self, bbox: BBox, cell: float, fn: HeightFn) -> None:
+        B = self.B
+        # Grid points on multiples of the cell, covering bbox.
+        self.x0 = math.floor(bbox[0] / cell) * cell
+        self.y0 = math.floor(bbox[2] / cell) * cell
+        bbox = (
+            self.x0,
+            math.ceil(bbox[1] / cell) * cell,
+            self.y0,
+            math.ceil(bbox[3] / cell) * cell,
+        )
+        self.cell = cell
+        self.nx = round((bbox[1] - bbox[0]) / cell) + 1
+        self.ny = round((bbox[3] - bbox[2]) / cell) + 1
+        self.x1 = self.x0 + (self.nx - 1) * cell
+        self.y1 = self.y0 + (self.ny - 1) * cell
+        self.nbx, self.nby = -(-self.nx // B), -(-self.ny // B)
+        z = np.full((self.nby * B, self.nbx * B), -np.inf, dtype=np.float32)
+        xs = self.x0 + np.arange(self.nx, dtype=np.float64) * cell
+        rows = max(1, 1_000_000 // self.nx)
+        for r0 in range(0, self.ny, rows):
+            r1 = min(self.ny, r0 + rows)
+            ys = self.y0 + np.arange(r0, r1, dtype=np.float64) * cell
+            z[r0:r1, : self.nx] = fn(xs[None, :], ys[:, None])
+        # Block-major copy: zb[by, bx] is the B x B block (rows y, cols x).
+        self.zb = np.ascontiguousarray(z.reshape(self.nby, B, self.nbx, B).transpose(0, 2, 1, 3))
+        flat = self.zb.reshape(self.nby, self.nbx, B * B)
+        arg = np.argmax(flat, axis=2)
+        self.bmax = np.take_along_axis(flat, arg[..., None], axis=2)[..., 0].astype(np.float64)
+        span = B * cell
+        self.brx0 = self.x0 + np.arange(self.nbx, dtype=np.float64)[None, :] * span
+        self.bry0 = self.y0 + np.arange(self.nby, dtype=np.float64)[:, None] * span
+        self.brx0, self.bry0 = np.broadcast_arrays(self.brx0, self.bry0)
+        self.ax = self.brx0 + (arg % B) * cell
+        self.ay = self.bry0 + (arg // B) * cell
+        self.offs = np.arange(B, dtype=np.float64) * cell
+        ne = np.nonzero(np.isfinite(self.bmax))
+        self._ne_cols = tuple(
+            a[ne] for a in (self.brx0, self.bry0, self.bmax, self.ax, self.ay, self.zb)
+        )
+
+    def nearest_sample(self, px: float, py: float, pz: float) -> tuple[float, float, float]:
+        """(distance, qx, qy) to the solid under the grid point nearest p_xy (inside)."""
+        ix = min(max(round((px - self.x0) / self.cell), 0), self.nx - 1)
+        iy = min(max(round((py - self.y0) / self.cell), 0), self.ny - 1)
+        B = self.B
+        z = float(self.zb[iy // B, ix // B, iy % B, ix % B])
+        qx, qy = self.x0 + ix * self.cell, self.y0 + iy * self.cell
+        return math.hypot(qx - px, qy - py, max(pz - z, 0.0)), qx, qy
+
+    def contains(self, px: float, py: float, r: float) -> bool:
+        return px - r >= self.x0 and px + r <= self.x1 and py - r >= self.y0 and py + r <= self.y1
+
+    def search_window(self, px: float, py: float, pz: float, r: float) -> Hit:
+        """`_search` over the blocks within r (m) of p_xy, horizontally."""
+        span = self.B * self.cell
+        bx0 = max(0, int((px - r - self.x0) // span))
+        bx1 = min(self.nbx, int((px + r - self.x0) // span) + 1)
+        by0 = max(0, int((py - r - self.y0) // span))
+        by1 = min(self.nby, int((py + r - self.y0) // span) + 1)
+        if bx0 >= bx1 or by0 >= by1:
+            return NO_HIT
+        w = (slice(by0, by1), slice(bx0, bx1))
+        cols = (self.brx0[w], self.bry0[w], self.bmax[w], self.ax[w], self.ay[w], self.zb[w])
+        return self._search(px, py, pz, r, cols)
+
+    def search_all(self, px: float, py: float, pz: float, ub: float) -> Hit:
+        """`_search` over every block that holds solid."""
+        return self._search(px, py, pz, ub, self._ne_cols)
+
+    def _search(
+        self,
+        px: float,
+        py: float,
+        pz: float,
+        ub: float,
+        cols: tuple[NDArray[np.floating[Any]], ...],
+    ) -> Hit:
+        """Nearest sample q by sqrt(|q - p_xy|^2 + max(0, pz - z(q))^2) (m), among the
+        blocks that can beat ub. cols: per block (any array shape S) origin x, origin y,
+        max, argmax x, argmax y and the samples (S + (B, B)).
+        """
+        rx0, ry0, bmax, ax, ay, zb = cols
+        if rx0.size == 0:
+            return NO_HIT
+        ext = (self.B - 1) * self.cell
+        dx = np.maximum(rx0 - px, 0.0) + np.maximum(px - ext - rx0, 0.0)
+        dy = np.maximum(ry0 - py, 0.0) + np.maximum(py - ext - ry0, 0.0)
+        dz2 = np.maximum(pz - bmax, 0.0) ** 2
+        lb2 = dx * dx + dy * dy + dz2
+        ub2 = min(ub * ub, float(np.min((ax - px) ** 2 + (ay - py) ** 2 + dz2)))
+        if not math.isfinite(ub2):
+            return NO_HIT
+        keep = lb2 <= ub2 * (1.0 + 1e-9) + 1e-12
+        xs = rx0[keep][:, None, None] + self.offs[None, None, :] - px
+        ys = ry0[keep][:, None, None] + self.offs[None, :, None] - py
+        d2 = xs * xs + ys * ys + np.maximum(pz - zb[keep].astype(np.float64), 0.0) ** 2
+        if d2.size == 0:
+            return NO_HIT
+        k = int(np.argmin(d2))
+        best = float(d2.flat[k])
+        if not math.isfinite(best):
+            return NO_HIT
+        kb, ky, kx = np.unravel_index(k, d2.shape)
+        return Hit(math.sqrt(best), float(xs[kb, 0, kx]) + px, float(ys[kb, ky, 0]) + py)
+
+
+class Hit(NamedTuple):
+    """Result of a raster search: distance (m) and the sample's (x, y)."""
+
+    dist: float
+    x: float
+    y: float
+
+
+NO_HIT = Hit(math.inf, 0.0, 0.0)
+
+
+def _grid(n: int) -> tuple[FloatArray, FloatArray]:
+    g = np.linspace(-1.0, 1.0, n)
+    return np.tile(g, n), np.repeat(g, n)
+
+
+_GRID_FIRST = _grid(11)
+_GRID_NEXT = _grid(9)
+
+
+def local_min(
+    p: tuple[float, float, float],
+    qx: float,
+    qy: float,
+    best: float,
+    span: float,
+    fn: HeightFn,
+    target: float = 0.005,
+    max_moves: int = 16,
+) -> float:
+    """Refine min sqrt(|q - p_xy|^2 + max(0, pz - fn(q))^2) (m) around (qx, qy).
+
+    Evaluates fn on square grids of half-width `span` (m) centred on the best point so
+    far: while the best point lands near the grid's edge the grid follows it (up to
+    max_moves times), otherwise it shrinks, until its step is below `target` (m). The
+    first grid also holds p_xy itself; if p is at or below fn there, returns 0.
+    """
+    px, py, pz = p
+    gx, gy = _GRID_FIRST
+    first = True
+    moves = 0
+    while True:
+        X = qx + span * gx
+        Y = qy + span * gy
+        if first:
+            X, Y = np.append(X, px), np.append(Y, py)
+        d2 = (X - px) ** 2 + (Y - py) ** 2 + np.maximum(pz - fn(X, Y), 0.0) ** 2
+        if first and d2[-1] == 0.0:
+            return 0.0
+        first = False
+        k = int(np.argmin(d2))
+        on_edge = False
+        if d2[k] < best * best:
+            best = math.sqrt(float(d2[k]))
+            qx, qy = float(X[k]), float(Y[k])
+            # Near the grid's edge: the minimum may lie beyond it (a slanted wall or edge
+            # seen through the grid's staircase), so follow it.
+            on_edge = k < gx.size and max(abs(gx[k]), abs(gy[k])) >= 0.7
+        if on_edge and moves < max_moves:
+            moves += 1
+            continue
+        step = 2.0 * span / (round(math.sqrt(gx.size)) - 1)
+        if step <= target:
+            return best
+        span = step
+        gx, gy = _GRID_NEXT
