@@ -75,6 +75,9 @@ correction accepted while moving in the project's scenarios and in the random-wo
 (at most 27 units seen), so that the bound changes no decision made on the move; what it
 spreads over cycles are the searches at rest and the dead-end retreat (up to 9 full
 searches, 50-150 ms in one cycle before)."""
+_CLEARANCE_EXTRA_M = 2.5
+"""The look-ahead clearances are measured this much beyond the look-ahead at once, metres,
+and sliced while the memory and the path do not change (`Planner._clearance`)."""
 _CARVE_SHORT_M = 0.5
 """A ray clears remembered points only up to this much short of its range, metres."""
 _CARVE_TOLERANCE_M = 0.25
@@ -146,6 +149,17 @@ class _LookAhead(NamedTuple):
     clearance: FloatArray | None
 
 
+class _ClearanceCache(NamedTuple):
+    """Clearances of the path samples start:stop (`Planner._clearance`), measured against
+    the memory at `version`."""
+
+    version: int
+    samples: _PathSamples
+    start: int
+    stop: int
+    values: FloatArray
+
+
 @dataclass(frozen=True, slots=True)
 class _Resolved:
     """How a re-plan search ended: a correction from here, a retreat, or neither (None,
@@ -207,6 +221,7 @@ class Planner:
         self._path: Path = route
         self._samples: _PathSamples | None = None
         self._look: _LookAhead | None = None
+        self._clearance_cache: _ClearanceCache | None = None
         # Clearances only matter below the re-plan trigger (D_min + margin / 2) and, for the
         # stopping limit, 0.05 m beyond it; anything farther need not be measured exactly.
         self._clearance_cutoff_m = params.d_min_m + 0.5 * params.clearance_margin_m + 0.1
@@ -557,14 +572,7 @@ class Planner:
             ahead = samples.window(self._s, params.lookahead_m)
             points = samples.points[ahead]
             curves = samples.curves_in(ahead)
-            clearance = None
-            if len(self._memory):
-                clearance = min_distance_within(
-                    points,
-                    self._memory.points_xy(),
-                    self._clearance_cutoff_m,
-                    self._memory.inflation_m(),
-                )
+            clearance = self._clearance(samples, ahead) if len(self._memory) else None
             self._look = _LookAhead(
                 samples.s[ahead],
                 points,
@@ -573,6 +581,35 @@ class Planner:
                 clearance,
             )
         return self._look
+
+    def _clearance(self, samples: _PathSamples, ahead: slice) -> FloatArray:
+        """The look-ahead samples' clearance from the remembered points (`_LookAhead`).
+
+        Measured _CLEARANCE_EXTRA_M beyond the look-ahead at once and kept while the memory
+        (`ObstacleMemory.version`) and the path stay the same: X_d moves a few centimetres a
+        cycle, so most cycles slice what an earlier one measured. Below the cutoff the
+        numbers are those of measuring the window alone (the nearest point is among the
+        points considered either way); above it both are >= the cutoff, which every reader
+        treats alike."""
+        memory = self._memory
+        cached = self._clearance_cache
+        if (
+            cached is None
+            or cached.version != memory.version
+            or cached.samples is not samples
+            or ahead.start < cached.start
+            or ahead.stop > cached.stop
+        ):
+            reach = samples.window(self._s, self.params.lookahead_m + _CLEARANCE_EXTRA_M)
+            values = min_distance_within(
+                samples.points[reach],
+                memory.points_xy(),
+                self._clearance_cutoff_m,
+                memory.inflation_m(),
+            )
+            cached = _ClearanceCache(memory.version, samples, reach.start, reach.stop, values)
+            self._clearance_cache = cached
+        return cached.values[ahead.start - cached.start : ahead.stop - cached.start]
 
     def _update_path(
         self, state: VehicleState, ranges: FloatArray, valid: BoolArray, events: list[str]
