@@ -78,6 +78,10 @@ searches, 50-150 ms in one cycle before)."""
 _CLEARANCE_EXTRA_M = 2.5
 """The look-ahead clearances are measured this much beyond the look-ahead at once, metres,
 and sliced while the memory and the path do not change (`Planner._clearance`)."""
+_NO_POINTS = np.empty((0, 3))
+_NO_INFLATION = np.empty(0)
+_NO_POINTS.setflags(write=False)
+_NO_INFLATION.setflags(write=False)
 _CARVE_SHORT_M = 0.5
 """A ray clears remembered points only up to this much short of its range, metres."""
 _CARVE_TOLERANCE_M = 0.25
@@ -206,6 +210,7 @@ class Planner:
             if group in sensors.surface_index:
                 row_threshold[sensors.surface_index[group]] = params.side_threshold_rad
         self._row_threshold = row_threshold
+        self._surface_items = tuple(sensors.surface_index.items())
         # The rows of `_ground_points` when every surface sensor reads (the usual case).
         all_surface = sensors.surface_index
         self._ground_rows_all = np.array(
@@ -310,8 +315,9 @@ class Planner:
         # Eqs (1)-(2): world points of every reading.
         rot = r_g(state.roll_rad, state.pitch_rad, state.yaw_rad)
         valid = self.sensors.valid(ranges)
+        valid_list: list[bool] = valid.tolist()
         points = range_points_world(state.position_enu, rot, self.sensors.boresights_flu, ranges)
-        surface = {g: i for g, i in self.sensors.surface_index.items() if valid[i]}
+        surface = {g: i for g, i in self._surface_items if valid_list[i]}
 
         # Eqs (3)-(4): desired pitch from the fore and aft ground points.
         x_h1 = self._ground_point(Group.SURFACE_FORWARD, points, surface, state)
@@ -332,13 +338,16 @@ class Planner:
         detected = valid[obs]
         ground = self._ground_points(points, surface, state)
         phi_star = steepness(points[obs], ground, detected)
-        steep_xyz, steep_inflation = self._steep_points(points, valid, ground, phi_star)
+        steep_xyz, steep_inflation = self._steep_points(
+            points, valid, valid_list, detected, ground, phi_star
+        )
         decision = decide(phi_star, self._thresholds)
         self._carve(state, rot, ranges, valid)
         if len(steep_xyz):
             self._memory.add(steep_xyz, self._cycle, steep_inflation)
         self._memory.forget_far(state.position_enu[:2])
-        min_range = float(ranges[obs][detected].min()) if detected.any() else 0.0
+        nearest = float(np.min(ranges[obs], initial=math.inf, where=detected))
+        min_range = nearest if nearest < math.inf else 0.0
 
         # Horizontal correction when the path ahead conflicts with remembered points.
         self._look = None  # the memory has changed: measure the look-ahead afresh
@@ -466,7 +475,13 @@ class Planner:
         return out
 
     def _steep_points(
-        self, points: FloatArray, valid: BoolArray, ground: FloatArray, phi_star: FloatArray
+        self,
+        points: FloatArray,
+        valid: BoolArray,
+        valid_list: list[bool],
+        detected: BoolArray,
+        ground: FloatArray,
+        phi_star: FloatArray,
     ) -> tuple[FloatArray, FloatArray]:
         """The points measured this cycle that are too steep to climb, (k, 3), and the
         inflation of each, (k,) metres. phi_star (eq. 6, per obstacle sensor) is raised in
@@ -489,32 +504,36 @@ class Planner:
         points enter the memory too.
         """
         params = self.params
+        sensors = self.sensors
         rows = np.flatnonzero(valid)
         held = [
             p
             for g, p in self._last_ground.items()
-            if self.sensors.surface_index.get(g) is None or not valid[self.sensors.surface_index[g]]
+            if (i := sensors.surface_index.get(g)) is None or not valid_list[i]
         ]
         cloud = points[rows] if not held else np.vstack([points[rows], *held])
         phi_pair, partner = chord_steepness(cloud, _MIN_CHORD_M)
-        n = len(self.sensors)
+        n = len(sensors)
+        n_rows = len(rows)
         phi_row = np.zeros(n)
-        phi_row[rows] = phi_pair[: len(rows)]
-        obs = self.sensors.obstacle_index
+        phi_row[rows] = phi_pair[:n_rows]
+        obs = sensors.obstacle_index
         chord_obs = phi_row[obs]
-        valid_obs = valid[obs]
-        eq6_steeper = phi_star >= chord_obs  # where eq. (6)'s own chord is the steeper one
-        phi_row[obs] = np.where(valid_obs, np.maximum(phi_star, chord_obs), 0.0)
-        phi_star[:] = phi_row[obs]
+        # Both are 0 where nothing was detected (`steepness`, and phi_row's zeros).
+        raised = np.maximum(phi_star, chord_obs)
+        phi_row[obs] = raised
         steep = valid & (phi_row > self._row_threshold)
         if not steep.any():  # the usual cycle: nothing to remember
-            return np.empty((0, 3)), np.empty(0)
+            phi_star[:] = raised
+            return _NO_POINTS, _NO_INFLATION
+        eq6_steeper = phi_star >= chord_obs  # where eq. (6)'s own chord is the steeper one
+        phi_star[:] = raised
         other = np.full((n, 3), np.nan)  # the chord's other end
-        found = partner[: len(rows)] >= 0
-        other[rows[found]] = cloud[partner[: len(rows)][found]]
+        found = partner[:n_rows] >= 0
+        other[rows[found]] = cloud[partner[:n_rows][found]]
         ground_z = np.full(n, np.inf)
         ground_z[obs] = ground[:, 2]
-        eq6 = valid_obs & eq6_steeper
+        eq6 = detected & eq6_steeper
         other[obs[eq6]] = ground[eq6]
         xyz, low = points[steep], other[steep]
         h = np.hypot(xyz[:, 0] - low[:, 0], xyz[:, 1] - low[:, 1])
@@ -796,9 +815,11 @@ class Planner:
     def _vehicle_ahead_m(self, position_enu: FloatArray) -> float:
         """How far the vehicle is ahead of last cycle's X_d along the path's heading there,
         metres (0 when behind or level); horizontal."""
-        offset = np.asarray(position_enu, dtype=np.float64)[:2] - self._xd_prev[:2]
+        x, y = position_enu[0], position_enu[1]
         heading = self._path_heading()
-        ahead = float(offset[0] * math.cos(heading) + offset[1] * math.sin(heading))
+        ahead = float(
+            (x - self._xd_prev[0]) * math.cos(heading) + (y - self._xd_prev[1]) * math.sin(heading)
+        )
         return ahead if math.isfinite(ahead) and ahead > 0.0 else 0.0
 
     def _free_range(self, ranges: FloatArray, valid: BoolArray) -> tuple[float, float]:
