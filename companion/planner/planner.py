@@ -151,6 +151,8 @@ class _LookAhead(NamedTuple):
     curve_s: FloatArray
     curve_v_sq: FloatArray
     clearance: FloatArray | None
+    conflict: bool
+    """Some sample's clearance is below the re-plan trigger, D_min + margin / 2."""
 
 
 class _ClearanceCache(NamedTuple):
@@ -162,6 +164,9 @@ class _ClearanceCache(NamedTuple):
     start: int
     stop: int
     values: FloatArray
+    close: list[int]
+    """The samples (indices into the path's samples, ascending) closer than the re-plan
+    trigger."""
 
 
 @dataclass(frozen=True, slots=True)
@@ -591,17 +596,22 @@ class Planner:
             ahead = samples.window(self._s, params.lookahead_m)
             points = samples.points[ahead]
             curves = samples.curves_in(ahead)
-            clearance = self._clearance(samples, ahead) if len(self._memory) else None
+            clearance, conflict = None, False
+            if len(self._memory):
+                clearance, close = self._clearance(samples, ahead)
+                first = bisect.bisect_left(close, ahead.start)
+                conflict = first < len(close) and close[first] < ahead.stop
             self._look = _LookAhead(
                 samples.s[ahead],
                 points,
                 samples.curve_s[curves],
                 samples.curve_v_sq[curves],
                 clearance,
+                conflict,
             )
         return self._look
 
-    def _clearance(self, samples: _PathSamples, ahead: slice) -> FloatArray:
+    def _clearance(self, samples: _PathSamples, ahead: slice) -> tuple[FloatArray, list[int]]:
         """The look-ahead samples' clearance from the remembered points (`_LookAhead`).
 
         Measured _CLEARANCE_EXTRA_M beyond the look-ahead at once and kept while the memory
@@ -609,7 +619,7 @@ class Planner:
         cycle, so most cycles slice what an earlier one measured. Below the cutoff the
         numbers are those of measuring the window alone (the nearest point is among the
         points considered either way); above it both are >= the cutoff, which every reader
-        treats alike."""
+        treats alike. Also the samples closer than the re-plan trigger (`_ClearanceCache`)."""
         memory = self._memory
         cached = self._clearance_cache
         if (
@@ -626,9 +636,15 @@ class Planner:
                 self._clearance_cutoff_m,
                 memory.inflation_m(),
             )
-            cached = _ClearanceCache(memory.version, samples, reach.start, reach.stop, values)
+            params = self.params
+            trigger = params.d_min_m + 0.5 * params.clearance_margin_m
+            close = (np.flatnonzero(values < trigger) + reach.start).tolist()
+            cached = _ClearanceCache(
+                memory.version, samples, reach.start, reach.stop, values, close
+            )
             self._clearance_cache = cached
-        return cached.values[ahead.start - cached.start : ahead.stop - cached.start]
+        window = cached.values[ahead.start - cached.start : ahead.stop - cached.start]
+        return window, cached.close
 
     def _update_path(
         self, state: VehicleState, ranges: FloatArray, valid: BoolArray, events: list[str]
@@ -649,12 +665,12 @@ class Planner:
             return False
         # The samples are within lookahead of here, so every remembered point closer to one
         # than the trigger distance is within `radius` of here: no need to filter first.
-        trigger = params.d_min_m + 0.5 * params.clearance_margin_m
-        conflict_samples = look.clearance < trigger
-        if not conflict_samples.any():
+        if not look.conflict:
             self._blocked = False
             self._search = None
             return False
+        trigger = params.d_min_m + 0.5 * params.clearance_margin_m
+        conflict_samples = look.clearance < trigger
         if self._mode is PathMode.RETREAT and not self._blocked:
             return False  # backing out along the covered track: it is known to be free
         nearby, nearby_inflation = self._memory.near_with_inflation(here, radius)
@@ -866,7 +882,7 @@ class Planner:
         if len(look.s) == 0:
             return v
         v = min(v, speed.curve_limit(look.curve_s, look.curve_v_sq, s_here, a))
-        if look.clearance is not None:
+        if look.clearance is not None and look.conflict:  # (else `clearance_limit` is inf)
             # A search still going on (`SEARCH_BUDGET_UNITS`) stops the vehicle as a blocked
             # one does, until it has its answer.
             v = min(
