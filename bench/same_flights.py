@@ -33,7 +33,7 @@ TEXT_COLUMNS = ("decision", "mode", "side")
 
 def fly_into(name: str, out_dir: Path) -> None:
     """Fly one scenario and write its outputs (as `companion simulate --no-plots`) and the
-    full-precision trace."""
+    full-precision trace and the obstacle memory at the end."""
     path = SCENARIO_DIR / f"{name}.yaml"
     scenario = load_scenario(path)
     world = World.from_config(scenario.world, path.parent)
@@ -42,7 +42,13 @@ def fly_into(name: str, out_dir: Path) -> None:
     write_outputs(out_dir, scenario, world, result, metrics, plots=False)
     numeric = {c: v for c, v in result.trace.items() if c not in TEXT_COLUMNS}
     text = {c: np.asarray(v, dtype=str) for c, v in result.trace.items() if c in TEXT_COLUMNS}
-    np.savez(out_dir / "trace.npz", phi_star=result.phi_star, **numeric, **text)
+    np.savez(
+        out_dir / "trace.npz",
+        phi_star=result.phi_star,
+        memory_xy=result.memory_xy,
+        **numeric,
+        **text,
+    )
 
 
 def _flatten(doc: Any, prefix: str = "") -> dict[str, Any]:

@@ -216,6 +216,8 @@ class Planner:
                 row_threshold[sensors.surface_index[group]] = params.side_threshold_rad
         self._row_threshold = row_threshold
         self._surface_items = tuple(sensors.surface_index.items())
+        # Row of the sensor table -> its position among the obstacle sensors.
+        self._obstacle_position = {int(r): k for k, r in enumerate(sensors.obstacle_index)}
         # The rows of `_ground_points` when every surface sensor reads (the usual case).
         all_surface = sensors.surface_index
         self._ground_rows_all = np.array(
@@ -531,22 +533,32 @@ class Planner:
         if not steep.any():  # the usual cycle: nothing to remember
             phi_star[:] = raised
             return _NO_POINTS, _NO_INFLATION
-        eq6_steeper = phi_star >= chord_obs  # where eq. (6)'s own chord is the steeper one
+        # Where eq. (6)'s own chord is the steeper one, its other end is the ground point.
+        eq6 = (detected & (phi_star >= chord_obs)).tolist()
         phi_star[:] = raised
-        other = np.full((n, 3), np.nan)  # the chord's other end
-        found = partner[:n_rows] >= 0
-        other[rows[found]] = cloud[partner[:n_rows][found]]
-        ground_z = np.full(n, np.inf)
-        ground_z[obs] = ground[:, 2]
-        eq6 = detected & eq6_steeper
-        other[obs[eq6]] = ground[eq6]
-        xyz, low = points[steep], other[steep]
+        # The chord's other end and the group's ground height (inf for a surface row) of
+        # each steep row, gathered in plain Python: there are a few of them.
+        cloud_rows = {r: j for j, r in enumerate(rows.tolist())}
+        partners = partner.tolist()
+        cloud_points = cloud.tolist()
+        ground_points = ground.tolist()
+        low_rows: list[list[float]] = []
+        ground_z: list[float] = []
+        for r in np.flatnonzero(steep).tolist():
+            k = self._obstacle_position.get(r)
+            if k is not None and eq6[k]:
+                low_rows.append(ground_points[k])
+            else:
+                j = partners[cloud_rows[r]]
+                low_rows.append(cloud_points[j] if j >= 0 else [math.nan] * 3)
+            ground_z.append(math.inf if k is None else ground_points[k][2])
+        xyz, low = points[steep], np.array(low_rows)
         h = np.hypot(xyz[:, 0] - low[:, 0], xyz[:, 1] - low[:, 1])
         local = h <= _LOCAL_CHORD_M
         theta = np.where(local, phi_row[steep], 0.5 * math.pi)
         slack = params.d_min_m + 0.5 * params.clearance_margin_m
         slope_term = np.maximum(params.d_min_m / np.sin(theta) - slack, 0.0)
-        z_g = np.minimum(low[:, 2], ground_z[steep])
+        z_g = np.minimum(low[:, 2], ground_z)
         rise = np.maximum(xyz[:, 2] - z_g - self._h_d, 0.0)
         foot_term = np.where(local, np.minimum(h, rise / np.tan(theta)), 0.0)
         inflation = slope_term + foot_term
