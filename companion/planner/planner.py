@@ -536,33 +536,41 @@ class Planner:
         # Where eq. (6)'s own chord is the steeper one, its other end is the ground point.
         eq6 = (detected & (phi_star >= chord_obs)).tolist()
         phi_star[:] = raised
-        # The chord's other end and the group's ground height (inf for a surface row) of
-        # each steep row, gathered in plain Python: there are a few of them.
+        # The rest per steep row in plain Python (there are a few): the chord's other end
+        # and the group's ground height (inf for a surface row), then the inflation.
         cloud_rows = {r: j for j, r in enumerate(rows.tolist())}
         partners = partner.tolist()
         cloud_points = cloud.tolist()
         ground_points = ground.tolist()
-        low_rows: list[list[float]] = []
-        ground_z: list[float] = []
-        for r in np.flatnonzero(steep).tolist():
+        steep_rows = np.flatnonzero(steep).tolist()
+        xyz = points[steep]
+        lows: list[list[float]] = []
+        for r in steep_rows:
             k = self._obstacle_position.get(r)
             if k is not None and eq6[k]:
-                low_rows.append(ground_points[k])
+                lows.append(ground_points[k])
             else:
                 j = partners[cloud_rows[r]]
-                low_rows.append(cloud_points[j] if j >= 0 else [math.nan] * 3)
-            ground_z.append(math.inf if k is None else ground_points[k][2])
-        xyz, low = points[steep], np.array(low_rows)
-        h = np.hypot(xyz[:, 0] - low[:, 0], xyz[:, 1] - low[:, 1])
-        local = h <= _LOCAL_CHORD_M
-        theta = np.where(local, phi_row[steep], 0.5 * math.pi)
+                lows.append(cloud_points[j] if j >= 0 else [math.nan] * 3)
+        steep_points = xyz.tolist()
+        # np.hypot, not math.hypot: the two can differ in the last bit.
+        chords: list[float] = np.hypot(
+            [p[0] - q[0] for p, q in zip(steep_points, lows, strict=True)],
+            [p[1] - q[1] for p, q in zip(steep_points, lows, strict=True)],
+        ).tolist()
         slack = params.d_min_m + 0.5 * params.clearance_margin_m
-        slope_term = np.maximum(params.d_min_m / np.sin(theta) - slack, 0.0)
-        z_g = np.minimum(low[:, 2], ground_z)
-        rise = np.maximum(xyz[:, 2] - z_g - self._h_d, 0.0)
-        foot_term = np.where(local, np.minimum(h, rise / np.tan(theta)), 0.0)
-        inflation = slope_term + foot_term
-        return xyz, inflation
+        inflation: list[float] = []
+        for r, p, q, h in zip(steep_rows, steep_points, lows, chords, strict=True):
+            if h <= _LOCAL_CHORD_M:  # (False for a chord without another end: NaN)
+                theta = float(phi_row[r])
+                k = self._obstacle_position.get(r)
+                z_g = q[2] if k is None else min(q[2], ground_points[k][2])
+                rise = max(p[2] - z_g - self._h_d, 0.0)
+                foot = min(h, rise / math.tan(theta))
+            else:
+                theta, foot = 0.5 * math.pi, 0.0
+            inflation.append(max(params.d_min_m / math.sin(theta) - slack, 0.0) + foot)
+        return xyz, np.array(inflation)
 
     def _path_heading(self) -> float:
         return self._path.segments[self._segment].heading(self._t)
