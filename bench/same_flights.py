@@ -40,15 +40,11 @@ def fly_into(name: str, out_dir: Path) -> None:
     result = run(scenario, world)
     metrics = metrics_mod.for_run(scenario, world, result)
     write_outputs(out_dir, scenario, world, result, metrics, plots=False)
-    numeric = {c: v for c, v in result.trace.items() if c not in TEXT_COLUMNS}
-    text = {c: np.asarray(v, dtype=str) for c, v in result.trace.items() if c in TEXT_COLUMNS}
-    np.savez(
-        out_dir / "trace.npz",
-        phi_star=result.phi_star,
-        memory_xy=result.memory_xy,
-        **numeric,
-        **text,
-    )
+    arrays: dict[str, Any] = {"phi_star": result.phi_star, "memory_xy": result.memory_xy}
+    for column, values in result.trace.items():
+        text = column in TEXT_COLUMNS
+        arrays[column] = np.asarray(values, dtype=str) if text else values
+    np.savez(out_dir / "trace.npz", **arrays)
 
 
 def _flatten(doc: Any, prefix: str = "") -> dict[str, Any]:
