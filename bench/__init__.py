@@ -9,5 +9,7 @@ Modules: `flight` (a timed closed-loop flight), `planner` (Planner.step, steady 
 re-planning), `arc` (eq. (5) stepping, exact vs the paper's search), `simulator`
 (in-process speed), `raycast` (World.raycast per ray), `service` (the service over UDP
 against the MAVLink simulator: latency, jitter, CPU, the pymavlink floor, lockstep speed,
-memory over a simulated hour), `report` (table, JSON, machine).
+memory over a simulated hour), `report` (table, JSON, machine). Not a benchmark:
+`same_flights` (`python -m bench.same_flights record DIR`, then `compare DIR` after a change)
+checks that every scenario still flies the same, metrics and full-precision traces.
 """

@@ -80,9 +80,9 @@ def run(runs: int = 3, replays: int = 100) -> tuple[Section, Flight]:
         "step, paper 7+4 sensors, steady, median",
         st["median"],
         "us",
-        ("<=", 50),
+        ("<=", 30),
     )
-    sec.add("planner.steady.p99_us", "step, steady, p99", st["p99"], "us", ("<=", 150))
+    sec.add("planner.steady.p99_us", "step, steady, p99", st["p99"], "us", ("<=", 100))
     sec.add("planner.steady.max_us", "step, steady, max", st["max"], "us")
     floor_us = equations_floor_us(scenario, flight)
     sec.details["paper_equations_floor_us"] = floor_us
@@ -174,7 +174,13 @@ def run(runs: int = 3, replays: int = 100) -> tuple[Section, Flight]:
         "us",
         ("<=", 1000),
     )
-    sec.add("planner.replan.all_max_us", "step, re-plan or blocked (all), max", all_rp["max"], "us")
+    sec.add(
+        "planner.replan.all_max_us",
+        "step, re-plan or blocked (all), max",
+        all_rp["max"],
+        "us",
+        ("<=", 5000),
+    )
     sec.add(
         "planner.replan.all_p99_ratio",
         "step, re-plan or blocked (all), p99 / floor",

@@ -7,6 +7,7 @@ per cycle (columns in TRACE_COLUMNS); metrics are computed from it by `companion
 from __future__ import annotations
 
 import csv
+import math
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -74,7 +75,8 @@ def sense(world: World, sensors: SensorTable, state: VehicleState) -> np.ndarray
     (what an autopilot reports for "out of range")."""
     rot = r_g(state.roll_rad, state.pitch_rad, state.yaw_rad)
     dirs = sensors.boresights_flu @ rot.T
-    origins = np.broadcast_to(state.position_enu, dirs.shape)
+    origins = np.empty_like(dirs)
+    origins[:] = state.position_enu  # (np.broadcast_to costs more than the copy)
     ranges = world.raycast(origins, dirs, sensors.max_range_m)
     return np.where(np.isfinite(ranges), ranges, sensors.max_range_m)
 
@@ -101,6 +103,7 @@ def run(
     vehicle = make_vehicle(scenario.vehicle, initial)
     dt = scenario.dt_s
     rows: dict[str, list[float | str]] = {c: [] for c in TRACE_COLUMNS}
+    columns = [rows[c] for c in TRACE_COLUMNS]
     phi_rows: list[np.ndarray] = []
     events: list[tuple[float, str]] = []
     step_times: list[float] = []
@@ -121,38 +124,45 @@ def run(
         state = vehicle.step(sp, dt)
         events.extend((t, e) for e in diag.events)
         pos = state.position_enu
-        thr_idx = int(np.argmax(diag.phi_star_rad - diag.threshold_rad))
-        row: dict[str, float | str] = {
-            "t": t,
-            "x": pos[0],
-            "y": pos[1],
-            "z": pos[2],
-            "roll": state.roll_rad,
-            "pitch": state.pitch_rad,
-            "yaw": state.yaw_rad,
-            "xd": sp.position_enu[0],
-            "yd": sp.position_enu[1],
-            "zd": sp.position_enu[2],
-            "yaw_d": sp.yaw_rad,
-            "phi_d": sp.pitch_rad,
-            "phi_star_max": float(diag.phi_star_rad.max()),
-            "phi_star_threshold": float(diag.threshold_rad[thr_idx]),
-            "decision": diag.decision.value,
-            "mode": diag.mode.value,
-            "side": diag.side.value,
-            "min_range": diag.min_range_m,
-            "clearance": world.obstacle_distance(pos),
-            "height": world.surface_distance(pos),
-            "speed_ref": diag.speed_ref_mps,
-            "speed_xd": float(np.linalg.norm(sp.position_enu - prev_xd)) / dt,
-            "segment": diag.segment,
-            "parameter": diag.parameter,
-            "replanned": float(diag.replanned),
-        }
-        for c in TRACE_COLUMNS:
-            rows[c].append(row[c])
-        phi_rows.append(diag.phi_star_rad.copy())
-        prev_xd = np.array(sp.position_enu)
+        x_d = sp.position_enu
+        phi_star = diag.phi_star_rad
+        step_xd = x_d - prev_xd
+        # One list per column, appended in TRACE_COLUMNS order (a dict per row cost more
+        # than the rest of the bookkeeping).
+        for column, value in zip(
+            columns,
+            (
+                t,
+                pos[0],
+                pos[1],
+                pos[2],
+                state.roll_rad,
+                state.pitch_rad,
+                state.yaw_rad,
+                x_d[0],
+                x_d[1],
+                x_d[2],
+                sp.yaw_rad,
+                sp.pitch_rad,
+                float(phi_star.max()),
+                float(diag.threshold_rad[int(np.argmax(phi_star - diag.threshold_rad))]),
+                diag.decision.value,
+                diag.mode.value,
+                diag.side.value,
+                diag.min_range_m,
+                world.obstacle_distance(pos),
+                world.surface_distance(pos),
+                diag.speed_ref_mps,
+                math.sqrt(float(step_xd.dot(step_xd))) / dt,  # (np.linalg.norm's sum)
+                diag.segment,
+                diag.parameter,
+                float(diag.replanned),
+            ),
+            strict=True,
+        ):
+            column.append(value)
+        phi_rows.append(phi_star.copy())
+        prev_xd = x_d
         if progress is not None and k % 200 == 0:
             progress(t, float(np.hypot(*(pos[:2] - goal))))
         if diag.finished:

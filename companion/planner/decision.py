@@ -8,6 +8,8 @@ from companion.planner.params import PlannerParams
 from companion.planner.sensors import Group
 from companion.planner.types import BoolArray, Decision, FloatArray, IntArray
 
+_ROWS = np.arange(64, dtype=np.intp)
+
 
 def steepness(
     obstacle_points: FloatArray, ground_points: FloatArray, detected: BoolArray
@@ -55,6 +57,7 @@ def chord_steepness(points: FloatArray, min_separation_m: float) -> tuple[FloatA
     n = len(points)
     if n < 2:
         return np.zeros(n), np.full(n, -1, dtype=np.intp)
+    # About a dozen points a cycle: the number of array operations sets the cost.
     x, y, z = points.T
     dz = np.subtract.outer(z, z)
     dx = np.subtract.outer(x, x)
@@ -65,7 +68,7 @@ def chord_steepness(points: FloatArray, min_separation_m: float) -> tuple[FloatA
     # usable, -1 elsewhere); the angle is taken of that chord only.
     ratio = np.divide(dz, h, out=np.full((n, n), -1.0), where=usable)
     partner = ratio.argmax(axis=1)
-    rows = np.arange(n)
-    found = ratio[rows, partner] >= 0.0
-    best = np.arctan2(dz[rows, partner], h[rows, partner])
-    return np.where(found, best, 0.0), np.where(found, partner, -1).astype(np.intp)
+    flat = partner + n * (_ROWS[:n] if n <= len(_ROWS) else np.arange(n))  # (i, partner i)
+    found = ratio.ravel()[flat] >= 0.0
+    best = np.arctan2(dz.ravel()[flat], h.ravel()[flat])
+    return np.where(found, best, 0.0), np.where(found, partner, -1)

@@ -75,6 +75,13 @@ correction accepted while moving in the project's scenarios and in the random-wo
 (at most 27 units seen), so that the bound changes no decision made on the move; what it
 spreads over cycles are the searches at rest and the dead-end retreat (up to 9 full
 searches, 50-150 ms in one cycle before)."""
+_CLEARANCE_EXTRA_M = 2.5
+"""The look-ahead clearances are measured this much beyond the look-ahead at once, metres,
+and sliced while the memory and the path do not change (`Planner._clearance`)."""
+_NO_POINTS = np.empty((0, 3))
+_NO_INFLATION = np.empty(0)
+_NO_POINTS.setflags(write=False)
+_NO_INFLATION.setflags(write=False)
 _CARVE_SHORT_M = 0.5
 """A ray clears remembered points only up to this much short of its range, metres."""
 _CARVE_TOLERANCE_M = 0.25
@@ -144,6 +151,22 @@ class _LookAhead(NamedTuple):
     curve_s: FloatArray
     curve_v_sq: FloatArray
     clearance: FloatArray | None
+    conflict: bool
+    """Some sample's clearance is below the re-plan trigger, D_min + margin / 2."""
+
+
+class _ClearanceCache(NamedTuple):
+    """Clearances of the path samples start:stop (`Planner._clearance`), measured against
+    the memory at `version`."""
+
+    version: int
+    samples: _PathSamples
+    start: int
+    stop: int
+    values: FloatArray
+    close: list[int]
+    """The samples (indices into the path's samples, ascending) closer than the re-plan
+    trigger."""
 
 
 @dataclass(frozen=True, slots=True)
@@ -192,6 +215,9 @@ class Planner:
             if group in sensors.surface_index:
                 row_threshold[sensors.surface_index[group]] = params.side_threshold_rad
         self._row_threshold = row_threshold
+        self._surface_items = tuple(sensors.surface_index.items())
+        # Row of the sensor table -> its position among the obstacle sensors.
+        self._obstacle_position = {int(r): k for k, r in enumerate(sensors.obstacle_index)}
         # The rows of `_ground_points` when every surface sensor reads (the usual case).
         all_surface = sensors.surface_index
         self._ground_rows_all = np.array(
@@ -207,6 +233,7 @@ class Planner:
         self._path: Path = route
         self._samples: _PathSamples | None = None
         self._look: _LookAhead | None = None
+        self._clearance_cache: _ClearanceCache | None = None
         # Clearances only matter below the re-plan trigger (D_min + margin / 2) and, for the
         # stopping limit, 0.05 m beyond it; anything farther need not be measured exactly.
         self._clearance_cutoff_m = params.d_min_m + 0.5 * params.clearance_margin_m + 0.1
@@ -295,8 +322,9 @@ class Planner:
         # Eqs (1)-(2): world points of every reading.
         rot = r_g(state.roll_rad, state.pitch_rad, state.yaw_rad)
         valid = self.sensors.valid(ranges)
+        valid_list: list[bool] = valid.tolist()
         points = range_points_world(state.position_enu, rot, self.sensors.boresights_flu, ranges)
-        surface = {g: i for g, i in self.sensors.surface_index.items() if valid[i]}
+        surface = {g: i for g, i in self._surface_items if valid_list[i]}
 
         # Eqs (3)-(4): desired pitch from the fore and aft ground points.
         x_h1 = self._ground_point(Group.SURFACE_FORWARD, points, surface, state)
@@ -317,13 +345,16 @@ class Planner:
         detected = valid[obs]
         ground = self._ground_points(points, surface, state)
         phi_star = steepness(points[obs], ground, detected)
-        steep_xyz, steep_inflation = self._steep_points(points, valid, ground, phi_star)
+        steep_xyz, steep_inflation = self._steep_points(
+            points, valid, valid_list, detected, ground, phi_star
+        )
         decision = decide(phi_star, self._thresholds)
         self._carve(state, rot, ranges, valid)
         if len(steep_xyz):
             self._memory.add(steep_xyz, self._cycle, steep_inflation)
         self._memory.forget_far(state.position_enu[:2])
-        min_range = float(ranges[obs][detected].min()) if detected.any() else 0.0
+        nearest = float(np.min(ranges[obs], initial=math.inf, where=detected))
+        min_range = nearest if nearest < math.inf else 0.0
 
         # Horizontal correction when the path ahead conflicts with remembered points.
         self._look = None  # the memory has changed: measure the look-ahead afresh
@@ -451,7 +482,13 @@ class Planner:
         return out
 
     def _steep_points(
-        self, points: FloatArray, valid: BoolArray, ground: FloatArray, phi_star: FloatArray
+        self,
+        points: FloatArray,
+        valid: BoolArray,
+        valid_list: list[bool],
+        detected: BoolArray,
+        ground: FloatArray,
+        phi_star: FloatArray,
     ) -> tuple[FloatArray, FloatArray]:
         """The points measured this cycle that are too steep to climb, (k, 3), and the
         inflation of each, (k,) metres. phi_star (eq. 6, per obstacle sensor) is raised in
@@ -474,44 +511,66 @@ class Planner:
         points enter the memory too.
         """
         params = self.params
+        sensors = self.sensors
         rows = np.flatnonzero(valid)
         held = [
             p
             for g, p in self._last_ground.items()
-            if self.sensors.surface_index.get(g) is None or not valid[self.sensors.surface_index[g]]
+            if (i := sensors.surface_index.get(g)) is None or not valid_list[i]
         ]
         cloud = points[rows] if not held else np.vstack([points[rows], *held])
         phi_pair, partner = chord_steepness(cloud, _MIN_CHORD_M)
-        n = len(self.sensors)
+        n = len(sensors)
+        n_rows = len(rows)
         phi_row = np.zeros(n)
-        phi_row[rows] = phi_pair[: len(rows)]
-        obs = self.sensors.obstacle_index
+        phi_row[rows] = phi_pair[:n_rows]
+        obs = sensors.obstacle_index
         chord_obs = phi_row[obs]
-        valid_obs = valid[obs]
-        eq6_steeper = phi_star >= chord_obs  # where eq. (6)'s own chord is the steeper one
-        phi_row[obs] = np.where(valid_obs, np.maximum(phi_star, chord_obs), 0.0)
-        phi_star[:] = phi_row[obs]
+        # Both are 0 where nothing was detected (`steepness`, and phi_row's zeros).
+        raised = np.maximum(phi_star, chord_obs)
+        phi_row[obs] = raised
         steep = valid & (phi_row > self._row_threshold)
         if not steep.any():  # the usual cycle: nothing to remember
-            return np.empty((0, 3)), np.empty(0)
-        other = np.full((n, 3), np.nan)  # the chord's other end
-        found = partner[: len(rows)] >= 0
-        other[rows[found]] = cloud[partner[: len(rows)][found]]
-        ground_z = np.full(n, np.inf)
-        ground_z[obs] = ground[:, 2]
-        eq6 = valid_obs & eq6_steeper
-        other[obs[eq6]] = ground[eq6]
-        xyz, low = points[steep], other[steep]
-        h = np.hypot(xyz[:, 0] - low[:, 0], xyz[:, 1] - low[:, 1])
-        local = h <= _LOCAL_CHORD_M
-        theta = np.where(local, phi_row[steep], 0.5 * math.pi)
+            phi_star[:] = raised
+            return _NO_POINTS, _NO_INFLATION
+        # Where eq. (6)'s own chord is the steeper one, its other end is the ground point.
+        eq6 = (detected & (phi_star >= chord_obs)).tolist()
+        phi_star[:] = raised
+        # The rest per steep row in plain Python (there are a few): the chord's other end
+        # and the group's ground height (inf for a surface row), then the inflation.
+        cloud_rows = {r: j for j, r in enumerate(rows.tolist())}
+        partners = partner.tolist()
+        cloud_points = cloud.tolist()
+        ground_points = ground.tolist()
+        steep_rows = np.flatnonzero(steep).tolist()
+        xyz = points[steep]
+        lows: list[list[float]] = []
+        for r in steep_rows:
+            k = self._obstacle_position.get(r)
+            if k is not None and eq6[k]:
+                lows.append(ground_points[k])
+            else:
+                j = partners[cloud_rows[r]]
+                lows.append(cloud_points[j] if j >= 0 else [math.nan] * 3)
+        steep_points = xyz.tolist()
+        # np.hypot, not math.hypot: the two can differ in the last bit.
+        chords: list[float] = np.hypot(
+            [p[0] - q[0] for p, q in zip(steep_points, lows, strict=True)],
+            [p[1] - q[1] for p, q in zip(steep_points, lows, strict=True)],
+        ).tolist()
         slack = params.d_min_m + 0.5 * params.clearance_margin_m
-        slope_term = np.maximum(params.d_min_m / np.sin(theta) - slack, 0.0)
-        z_g = np.minimum(low[:, 2], ground_z[steep])
-        rise = np.maximum(xyz[:, 2] - z_g - self._h_d, 0.0)
-        foot_term = np.where(local, np.minimum(h, rise / np.tan(theta)), 0.0)
-        inflation = slope_term + foot_term
-        return xyz, inflation
+        inflation: list[float] = []
+        for r, p, q, h in zip(steep_rows, steep_points, lows, chords, strict=True):
+            if h <= _LOCAL_CHORD_M:  # (False for a chord without another end: NaN)
+                theta = float(phi_row[r])
+                k = self._obstacle_position.get(r)
+                z_g = q[2] if k is None else min(q[2], ground_points[k][2])
+                rise = max(p[2] - z_g - self._h_d, 0.0)
+                foot = min(h, rise / math.tan(theta))
+            else:
+                theta, foot = 0.5 * math.pi, 0.0
+            inflation.append(max(params.d_min_m / math.sin(theta) - slack, 0.0) + foot)
+        return xyz, np.array(inflation)
 
     def _path_heading(self) -> float:
         return self._path.segments[self._segment].heading(self._t)
@@ -557,22 +616,55 @@ class Planner:
             ahead = samples.window(self._s, params.lookahead_m)
             points = samples.points[ahead]
             curves = samples.curves_in(ahead)
-            clearance = None
+            clearance, conflict = None, False
             if len(self._memory):
-                clearance = min_distance_within(
-                    points,
-                    self._memory.points_xy(),
-                    self._clearance_cutoff_m,
-                    self._memory.inflation_m(),
-                )
+                clearance, close = self._clearance(samples, ahead)
+                first = bisect.bisect_left(close, ahead.start)
+                conflict = first < len(close) and close[first] < ahead.stop
             self._look = _LookAhead(
                 samples.s[ahead],
                 points,
                 samples.curve_s[curves],
                 samples.curve_v_sq[curves],
                 clearance,
+                conflict,
             )
         return self._look
+
+    def _clearance(self, samples: _PathSamples, ahead: slice) -> tuple[FloatArray, list[int]]:
+        """The look-ahead samples' clearance from the remembered points (`_LookAhead`).
+
+        Measured _CLEARANCE_EXTRA_M beyond the look-ahead at once and kept while the memory
+        (`ObstacleMemory.version`) and the path stay the same: X_d moves a few centimetres a
+        cycle, so most cycles slice what an earlier one measured. Below the cutoff the
+        numbers are those of measuring the window alone (the nearest point is among the
+        points considered either way); above it both are >= the cutoff, which every reader
+        treats alike. Also the samples closer than the re-plan trigger (`_ClearanceCache`)."""
+        memory = self._memory
+        cached = self._clearance_cache
+        if (
+            cached is None
+            or cached.version != memory.version
+            or cached.samples is not samples
+            or ahead.start < cached.start
+            or ahead.stop > cached.stop
+        ):
+            reach = samples.window(self._s, self.params.lookahead_m + _CLEARANCE_EXTRA_M)
+            values = min_distance_within(
+                samples.points[reach],
+                memory.points_xy(),
+                self._clearance_cutoff_m,
+                memory.inflation_m(),
+            )
+            params = self.params
+            trigger = params.d_min_m + 0.5 * params.clearance_margin_m
+            close = (np.flatnonzero(values < trigger) + reach.start).tolist()
+            cached = _ClearanceCache(
+                memory.version, samples, reach.start, reach.stop, values, close
+            )
+            self._clearance_cache = cached
+        window = cached.values[ahead.start - cached.start : ahead.stop - cached.start]
+        return window, cached.close
 
     def _update_path(
         self, state: VehicleState, ranges: FloatArray, valid: BoolArray, events: list[str]
@@ -593,12 +685,12 @@ class Planner:
             return False
         # The samples are within lookahead of here, so every remembered point closer to one
         # than the trigger distance is within `radius` of here: no need to filter first.
-        trigger = params.d_min_m + 0.5 * params.clearance_margin_m
-        conflict_samples = look.clearance < trigger
-        if not conflict_samples.any():
+        if not look.conflict:
             self._blocked = False
             self._search = None
             return False
+        trigger = params.d_min_m + 0.5 * params.clearance_margin_m
+        conflict_samples = look.clearance < trigger
         if self._mode is PathMode.RETREAT and not self._blocked:
             return False  # backing out along the covered track: it is known to be free
         nearby, nearby_inflation = self._memory.near_with_inflation(here, radius)
@@ -759,9 +851,11 @@ class Planner:
     def _vehicle_ahead_m(self, position_enu: FloatArray) -> float:
         """How far the vehicle is ahead of last cycle's X_d along the path's heading there,
         metres (0 when behind or level); horizontal."""
-        offset = np.asarray(position_enu, dtype=np.float64)[:2] - self._xd_prev[:2]
+        x, y = position_enu[0], position_enu[1]
         heading = self._path_heading()
-        ahead = float(offset[0] * math.cos(heading) + offset[1] * math.sin(heading))
+        ahead = float(
+            (x - self._xd_prev[0]) * math.cos(heading) + (y - self._xd_prev[1]) * math.sin(heading)
+        )
         return ahead if math.isfinite(ahead) and ahead > 0.0 else 0.0
 
     def _free_range(self, ranges: FloatArray, valid: BoolArray) -> tuple[float, float]:
@@ -808,7 +902,7 @@ class Planner:
         if len(look.s) == 0:
             return v
         v = min(v, speed.curve_limit(look.curve_s, look.curve_v_sq, s_here, a))
-        if look.clearance is not None:
+        if look.clearance is not None and look.conflict:  # (else `clearance_limit` is inf)
             # A search still going on (`SEARCH_BUDGET_UNITS`) stops the vehicle as a blocked
             # one does, until it has its answer.
             v = min(

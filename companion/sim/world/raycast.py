@@ -32,7 +32,9 @@ def ray_args(
     if n and not (float(norm.min()) > 1e-12 and math.isfinite(float(norm.sum()))):
         raise ValueError("ray directions must be finite and non-zero")
     d = d / norm[:, None]
-    rng = np.broadcast_to(np.asarray(max_range_m, np.float64), (n,))
+    rng = np.asarray(max_range_m, np.float64)
+    if rng.shape != (n,):  # (np.broadcast_to costs more than a ray cast's arithmetic)
+        rng = np.broadcast_to(rng, (n,))
     if n and not (float(rng.min()) >= 0.0 and math.isfinite(float(rng.sum()))):
         raise ValueError("max_range_m must be finite and >= 0")
     return o, d, rng

@@ -1,0 +1,84 @@
+"""The planner's per-cycle shortcuts give the numbers of measuring afresh: the look-ahead's
+clearances kept between cycles (`Planner._clearance`) against `min_distance_within` on the
+cycle's own window, and the steep-point step against the array form it replaced."""
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import companion.planner.planner as planner_mod
+from companion.harness.closed_loop import run
+from companion.planner.avoidance import min_distance_within
+from companion.planner.decision import chord_steepness
+from companion.sim.scenario import load_scenario
+from companion.sim.world import World
+
+SCENARIO_DIR = Path(__file__).parent.parent / "config" / "scenarios"
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("name", ["wall", "pillars"])
+def test_kept_clearances_are_those_measured_afresh(
+    name: str, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    checked: list[int] = []
+    slice_look = planner_mod.Planner._look_ahead
+
+    def checking_look_ahead(self: planner_mod.Planner) -> planner_mod._LookAhead:
+        look = slice_look(self)
+        if look.clearance is not None:
+            memory = self._memory
+            fresh = min_distance_within(
+                look.points, memory.points_xy(), self._clearance_cutoff_m, memory.inflation_m()
+            )
+            cutoff = self._clearance_cutoff_m
+            exact = (fresh < cutoff) | (look.clearance < cutoff)
+            assert np.array_equal(look.clearance[exact], fresh[exact])
+            trigger = self.params.d_min_m + 0.5 * self.params.clearance_margin_m
+            assert look.conflict == bool((fresh < trigger).any())
+            checked.append(len(look.s))
+        return look
+
+    monkeypatch.setattr(planner_mod.Planner, "_look_ahead", checking_look_ahead)
+    path = SCENARIO_DIR / f"{name}.yaml"
+    scenario = load_scenario(path)
+    run(scenario, World.from_config(scenario.world, path.parent))
+    assert len(checked) > 100, "the flight never had remembered points ahead"
+
+
+def chord_steepness_reference(
+    points: np.ndarray, min_separation_m: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """The array form `chord_steepness` had before it indexed the chords flat."""
+    n = len(points)
+    if n < 2:
+        return np.zeros(n), np.full(n, -1, dtype=np.intp)
+    x, y, z = points.T
+    dz = np.subtract.outer(z, z)
+    dx = np.subtract.outer(x, x)
+    dy = np.subtract.outer(y, y)
+    h = np.sqrt(dx * dx + dy * dy)
+    usable = (dz > 0.0) & (h >= min_separation_m)
+    ratio = np.divide(dz, h, out=np.full((n, n), -1.0), where=usable)
+    partner = ratio.argmax(axis=1)
+    rows = np.arange(n)
+    found = ratio[rows, partner] >= 0.0
+    best = np.arctan2(dz[rows, partner], h[rows, partner])
+    return np.where(found, best, 0.0), np.where(found, partner, -1).astype(np.intp)
+
+
+def test_chord_steepness_is_its_array_form_bit_for_bit() -> None:
+    rng = np.random.default_rng(11)
+    for trial in range(300):
+        n = int(rng.integers(0, 80))  # past the 64 rows kept for the flat index too
+        pts = rng.normal(size=(n, 3)) * 3.0
+        if trial % 3 == 0 and n:  # ties: equal heights, points straight above each other
+            pts[:, 2] = np.round(pts[:, 2])
+            pts[: n // 2, :2] = pts[0, :2]
+        for sep in (0.5, 0.1):
+            phi, partner = chord_steepness(pts, sep)
+            ref_phi, ref_partner = chord_steepness_reference(pts, sep)
+            assert np.array_equal(phi, ref_phi)
+            assert np.array_equal(partner, ref_partner)
+            assert partner.dtype == np.intp
