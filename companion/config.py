@@ -31,6 +31,7 @@ import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
 from companion.connection import LinkSpec, parse_connection
+from companion.geo import latlon_to_enu_xy
 from companion.planner.sensors import SensorTable
 from companion.tuning import PlannerConfig, SensorConfig, include_sensors_file, sensor_table
 
@@ -210,15 +211,9 @@ MIN_ROUTE_SPACING_M = 1.0
 
 
 def latlon_points_xy(points: list[tuple[float, float]]) -> list[tuple[float, float]]:
-    """(lat, lon) degrees -> east/north metres from the first point (small-area, sphere)."""
-    lat0, lon0 = points[0]
-    r = 6_371_000.0
-    out = []
-    for lat, lon in points:
-        dlon = (lon - lon0 + 180.0) % 360.0 - 180.0
-        east = math.radians(dlon) * r * math.cos(math.radians(0.5 * (lat + lat0)))
-        out.append((east, math.radians(lat - lat0) * r))
-    return out
+    """(lat, lon) degrees -> east/north metres from the first point, in the tangent plane
+    at it (`companion.geo`, the one geodesy)."""
+    return latlon_to_enu_xy(points)
 
 
 def route_problem(xy: list[tuple[float, float]], origin_is_home: bool = True) -> str:

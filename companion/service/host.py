@@ -23,7 +23,7 @@ from typing import Any, Protocol
 import numpy as np
 
 from companion.config import ServiceConfig
-from companion.geo import GeoPoint
+from companion.geo import GeoPoint, LocalFrame
 from companion.planner.frames import attitude_ned_to_enu, wrap_pi
 from companion.planner.params import PlannerParams
 from companion.planner.route import Route
@@ -31,7 +31,6 @@ from companion.planner.sensors import SensorTable
 from companion.planner.types import FloatArray, Setpoint, StepResult, VehicleState
 from companion.service.clock import Clock
 from companion.service.flightlog import FlightLogWriter
-from companion.service.geodesy import TangentPlane
 from companion.service.mission import latlon_to_xy
 from companion.service.statustext import Severity
 from companion.service.telemetry import Telemetry
@@ -119,7 +118,7 @@ class PlannerHost:
         self.params: PlannerParams = cfg.planner.to_params()
         """The planner's parameters; `params.h_d_m` is H_d at run time (its one owner)."""
 
-        self.frame: TangentPlane | None = None
+        self.frame: LocalFrame | None = None
         self.frame_frozen = False
         self._frame_key: tuple[GeoPoint, int] | None = None
         self.route_source_points: FloatArray | None = None
@@ -172,7 +171,7 @@ class PlannerHost:
         if key == self._frame_key:
             return
         self._frame_key = key
-        self.frame = TangentPlane(origin)
+        self.frame = LocalFrame(origin)
         r = self.cfg.route
         if r.source == "config":
             if r.points is not None:
