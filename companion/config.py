@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import math
 import sys
+from collections.abc import Mapping
 from pathlib import Path
 from typing import Annotated, Any, Literal, TextIO
 
@@ -424,6 +425,20 @@ def format_errors(exc: ValidationError) -> list[str]:
     return lines
 
 
+def planner_with(planner: PlannerConfig, changes: Mapping[str, float]) -> PlannerConfig:
+    """`planner` with `changes` (its own key names and units) applied, validated by the rules
+    of the file's `planner:` section (the same model, so no second copy of a range).
+    ValueError names each problem as check-config does, e.g. ``planner.h_d_m: expected a
+    number greater than 0, found -1.0``."""
+    unknown = sorted(set(changes) - set(PlannerConfig.model_fields))
+    if unknown:
+        raise ValueError(f"planner: no key {', '.join(unknown)}")
+    try:
+        return PlannerConfig.model_validate({**planner.model_dump(), **changes})
+    except ValidationError as exc:
+        raise ValueError("; ".join(f"planner.{line}" for line in format_errors(exc))) from None
+
+
 def parse_config(data: Any, path: Path | None = None) -> ServiceConfig:
     """Validate already-parsed YAML; ConfigError lists every problem."""
     if not isinstance(data, dict):
@@ -584,4 +599,5 @@ __all__ = [
     "format_errors",
     "load_config",
     "parse_config",
+    "planner_with",
 ]
