@@ -11,18 +11,23 @@ generous bound.
 from __future__ import annotations
 
 import asyncio
+import json
 import math
+import os
 from collections.abc import AsyncIterator
 from dataclasses import dataclass, field, replace
+from pathlib import Path
 from typing import Any
 
 import numpy as np
 import pytest
 from pymavlink import mavutil
 
+from companion.config import load_config
 from companion.planner.types import PathMode, StepResult
 from companion.service import Service
 from companion.service.codec import mavlink2
+from companion.service.flightlog import FlightLogWriter
 from companion.service.host import default_planner_factory, height_only
 from companion.service.link import UdpInLink
 from companion.service.notify import SystemdNotifier
@@ -33,6 +38,8 @@ from companion.service.params import (
     PARAMS,
     ParamServer,
     from_real32,
+    persist_to,
+    write_planner_values,
 )
 from companion.tuning import PlannerConfig
 from tests.service_fakes import SENSORS, FakePlanner, make_config
@@ -390,3 +397,100 @@ def test_height_only_is_exactly_a_change_the_running_planner_can_take() -> None:
     assert height_only(base, replace(base, h_d_m=5.0))  # arctan(5/2) > 0.6 either way
     assert not height_only(base, replace(base, h_d_m=1.0))  # the side threshold moves
     assert not height_only(base, replace(base, h_d_m=5.0, v_d_mps=2.0))
+
+
+# --- writing accepted values back to the config file ---------------------------------------
+
+CONFIG_TEXT = """\
+# a service config, with comments a user wrote
+link: {connection: "udpin:0.0.0.0:14540"}
+route:
+  source: config
+  points: [[20.0, 0.0], [40.0, 0.0]]
+planner:   # tuned on the field
+  h_d_m: 2.0     # H_d, m
+  # D_min stays at its default
+  v_d_mps: 1.0
+sensors:
+  - {id: 0, name: front, role: obstacle, group: F, orientation: NONE}
+  - {id: 1, name: h1, role: surface, group: forward, orientation: PITCH_315}
+  - {id: 2, name: h2, role: surface, group: back, rpy_deg: [0, 315, 180]}
+"""
+PLANNER_BLOCK = CONFIG_TEXT[CONFIG_TEXT.index("planner:") : CONFIG_TEXT.index("sensors:")]
+
+
+def test_write_keeps_comments_replaces_and_adds_keys(tmp_path: Path) -> None:
+    path = tmp_path / "companion.yaml"
+    path.write_text(CONFIG_TEXT)
+    path.chmod(0o640)
+    write_planner_values(path, {"h_d_m": 3.5, "d_min_m": 2.5})
+    text = path.read_text()
+    assert "  h_d_m: 3.5     # H_d, m\n" in text
+    assert "planner:   # tuned on the field\n  d_min_m: 2.5\n" in text
+    assert (
+        text.replace("  h_d_m: 3.5     # H_d, m\n", "  h_d_m: 2.0     # H_d, m\n").replace(
+            "  d_min_m: 2.5\n", ""
+        )
+        == CONFIG_TEXT
+    )  # nothing else moved
+    cfg = load_config(path)
+    assert (cfg.planner.h_d_m, cfg.planner.d_min_m, cfg.planner.v_d_mps) == (3.5, 2.5, 1.0)
+    assert path.stat().st_mode & 0o777 == 0o640
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["companion.yaml"]  # no temporary
+
+
+def test_write_adds_a_missing_section(tmp_path: Path) -> None:
+    path = tmp_path / "c.yaml"
+    path.write_text(CONFIG_TEXT.replace(PLANNER_BLOCK, ""))
+    write_planner_values(path, {"v_d_mps": 1.5})
+    assert load_config(path).planner.v_d_mps == 1.5
+
+
+def test_write_refuses_flow_style_and_leaves_the_file_alone(tmp_path: Path) -> None:
+    path = tmp_path / "c.yaml"
+    original = CONFIG_TEXT.replace(
+        PLANNER_BLOCK,
+        "planner: {h_d_m: 2.0}\n",
+    )
+    path.write_text(original)
+    with pytest.raises(ValueError, match="flow style"):
+        write_planner_values(path, {"h_d_m": 3.0})
+    assert path.read_text() == original
+    # a value the config refuses is not written either
+    path.write_text(CONFIG_TEXT)
+    with pytest.raises(ValueError, match="would not load"):
+        write_planner_values(path, {"h_d_m": -1.0})
+    assert path.read_text() == CONFIG_TEXT
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["c.yaml"]
+
+
+def test_an_accepted_set_is_persisted_and_a_refused_one_is_not(tmp_path: Path) -> None:
+    path = tmp_path / "companion.yaml"
+    path.write_text(CONFIG_TEXT)
+    desk = Desk(rig())
+    desk.server.persist = persist_to(path)
+    desk.set("TFC_H_D", 4.0)
+    desk.set("TFC_V_D", 50.0)  # refused
+    cfg = load_config(path)
+    assert cfg.planner.h_d_m == 4.0 and cfg.planner.v_d_mps == 1.0
+    path.chmod(0o444)
+    tmp_path.chmod(0o555)  # a read-only directory: the change stays in force, and is said
+    try:
+        assert desk.set("TFC_H_D", 5.0).param_value == 5.0
+    finally:
+        tmp_path.chmod(0o755)
+    if os.geteuid() != 0:  # root writes anyway
+        assert "not saved" in desk.said[-1]
+    assert desk.r.host.h_d_m == 5.0
+
+
+def test_a_change_in_flight_is_a_planner_record_of_the_flight_log(tmp_path: Path) -> None:
+    r = rig()
+    r.host.flight_log = FlightLogWriter(tmp_path, 10_000_000, 3)
+    r.host.flight_log.header({"planner": r.host.tuning.model_dump(mode="json")})
+    Desk(r).set("TFC_D_MIN", 3.0)
+    r.host.flight_log.close()
+    (log_file,) = tmp_path.glob("flight-*.jsonl")
+    records = [json.loads(line) for line in log_file.read_text().splitlines()]
+    (rec,) = [x for x in records if x["type"] == "planner"]
+    assert rec["planner"]["d_min_m"] == 3.0 and rec["planner"]["h_d_m"] == 2.0

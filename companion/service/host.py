@@ -196,6 +196,14 @@ class PlannerHost:
             if why:
                 raise RetuneRefusedError(f"the planner is {why}: retry on the route")
         self.tuning, self.params = tuning, params
+        if self.flight_log is not None:
+            self.flight_log.write(
+                {
+                    "type": "planner",
+                    "t": self.clock.now(),
+                    "planner": tuning.model_dump(mode="json"),
+                }
+            )
         if self.planner is None:
             return  # the next planner built takes them (`_planner_built` if one is building)
         if smooth:

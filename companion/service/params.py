@@ -26,12 +26,18 @@ from __future__ import annotations
 
 import logging
 import math
+import os
+import re
+import shutil
+import tempfile
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Protocol
 
 import numpy as np
 
+from companion.config import ConfigError, load_config
 from companion.service.codec import MAVLinkMessage, mavlink2
 from companion.service.statustext import Severity
 from companion.tuning import PlannerConfig
@@ -216,6 +222,77 @@ class ParamServer:
         self.send(param_value_message(index, self.value(index)))
 
 
+# --- writing accepted values back to the config file ---------------------------------------
+
+_SECTION = re.compile(r"^planner:[ \t]*(#.*)?$")
+
+
+def write_planner_values(path: Path, changes: Mapping[str, float]) -> None:
+    """Write `changes` ({planner key: value}) into the `planner:` section of the YAML config
+    at `path`, atomically (a temporary file in the same directory, checked, then renamed
+    over it) and keeping every other line, comments included: a key's line has its value
+    replaced (its comment kept), a missing key is added at the top of the section, a missing
+    section at the end of the file. ValueError, and the file untouched, when the section is
+    in flow style (`planner: {...}`) or the edited file would not load as these values."""
+    text = path.read_text(encoding="utf-8")
+    lines = text.splitlines(keepends=True)
+    if lines and not lines[-1].endswith("\n"):
+        lines[-1] += "\n"
+    start = next((i for i, ln in enumerate(lines) if _SECTION.match(ln.rstrip("\r\n"))), None)
+    if start is None:
+        if any(ln.startswith("planner:") for ln in lines):
+            raise ValueError("its planner: section is in flow style; edit that file by hand")
+        lines.append("planner:\n")
+        start = len(lines) - 1
+    end = start + 1
+    while end < len(lines) and (lines[end][:1] in (" ", "\t") or not lines[end].strip()):
+        end += 1
+    indent = "  "
+    for ln in lines[start + 1 : end]:
+        if ln.strip() and not ln.lstrip().startswith("#"):
+            indent = ln[: len(ln) - len(ln.lstrip())]
+            break
+    for key, value in changes.items():
+        entry = re.compile(rf"^{re.escape(indent)}{re.escape(key)}:[ \t]*([^#\r\n]*?)([ \t]*#.*)?$")
+        for i in range(start + 1, end):
+            m = entry.match(lines[i].rstrip("\r\n"))
+            if m is not None:
+                comment = m.group(2) or ""
+                lines[i] = f"{indent}{key}: {value!r}{comment}\n"
+                break
+        else:
+            lines.insert(start + 1, f"{indent}{key}: {value!r}\n")
+            end += 1
+    fd, tmp_name = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    tmp = Path(tmp_name)
+    try:
+        with os.fdopen(fd, "w", encoding="utf-8") as f:
+            f.write("".join(lines))
+            f.flush()
+            os.fsync(f.fileno())
+        try:
+            planner = load_config(tmp).planner
+        except ConfigError as exc:
+            raise ValueError(f"the edited file would not load: {exc}") from None
+        wrong = [k for k, v in changes.items() if getattr(planner, k) != v]
+        if wrong:
+            raise ValueError(f"could not place {', '.join(wrong)} in its planner: section")
+        shutil.copymode(path, tmp)
+        os.replace(tmp, path)
+    finally:
+        tmp.unlink(missing_ok=True)
+
+
+def persist_to(path: Path) -> Persist:
+    """A `ParamServer.persist` writing accepted values into the config file at `path`."""
+
+    def persist(changes: Mapping[str, float]) -> None:
+        write_planner_values(path, changes)
+        log.info("saved %s to %s", ", ".join(f"planner.{k}" for k in changes), path)
+
+    return persist
+
+
 def param_value_message(index: int, value: float) -> MAVLinkMessage:
     """PARAM_VALUE of table entry `index` with `value` (REAL32)."""
     pid = PARAMS[index].param_id.encode("ascii")
@@ -251,4 +328,6 @@ __all__ = [
     "from_real32",
     "param_table_markdown",
     "param_value_message",
+    "persist_to",
+    "write_planner_values",
 ]
