@@ -37,6 +37,7 @@ from companion.service.params import (
     PARAMS,
     ParamServer,
     from_real32,
+    param_table_markdown,
     persist_to,
     write_planner_values,
 )
@@ -489,3 +490,8 @@ def test_a_change_in_flight_is_a_planner_record_of_the_flight_log(tmp_path: Path
     records = [json.loads(line) for line in log_file.read_text().splitlines()]
     (rec,) = [x for x in records if x["type"] == "planner"]
     assert rec["planner"]["d_min_m"] == 3.0 and rec["planner"]["h_d_m"] == 2.0
+
+
+def test_the_docs_table_is_the_codes() -> None:
+    docs = (Path(__file__).resolve().parents[1] / "docs" / "service.md").read_text()
+    assert param_table_markdown() in docs
