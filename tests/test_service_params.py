@@ -246,6 +246,9 @@ async def test_unknown_ids_and_other_components_get_no_value(
     station: tuple[Service, Station],
 ) -> None:
     svc, gcs = station
+    said: list[str] = []
+    say = svc.params.say
+    svc.params.say = lambda text, sev: (said.append(text), say(text, sev))[-1]
     await gcs.send(
         mavlink2.MAVLink_param_set_message(
             OUR_SYSID, OUR_COMPID, b"TFC_NOPE", 1.0, MAV_PARAM_TYPE_REAL32
@@ -258,11 +261,19 @@ async def test_unknown_ids_and_other_components_get_no_value(
     await gcs.send(
         mavlink2.MAVLink_param_set_message(OUR_SYSID, 1, b"TFC_H_D", 4.0, MAV_PARAM_TYPE_REAL32)
     )
+    # an id we do not have, asked of every component, is another's: no word about it
+    await gcs.send(
+        mavlink2.MAVLink_param_set_message(
+            OUR_SYSID, 0, b"RNGFND1_TYPE", 10.0, MAV_PARAM_TYPE_REAL32
+        )
+    )
+    await gcs.send(mavlink2.MAVLink_param_request_read_message(OUR_SYSID, 0, b"RNGFND1_TYPE", -1))
     # then one request that is ours: the first PARAM_VALUE must be its answer
     await gcs.send(mavlink2.MAVLink_param_request_read_message(OUR_SYSID, OUR_COMPID, b"", 0))
     (m,) = await gcs.values(1)
     assert m.param_index == 0 and svc.host.h_d_m == 2.0
-    assert svc.params.counters == {"requests": 2, "set": 0, "refused": 0, "unknown": 1}
+    assert svc.params.counters == {"requests": 4, "set": 0, "refused": 0, "unknown": 1}
+    assert said == ["cannot set 'TFC_NOPE': no such parameter"]  # nothing about RNGFND1_TYPE
 
 
 # --- the planner sees it at the next cycle (manual clock, the real planner) -------------------

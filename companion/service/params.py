@@ -18,8 +18,9 @@ A PARAM_SET is validated by the config's own model (`companion.config.planner_wi
 applied through the planner's host (`PlannerHost.retune`), the one owner of the values at
 run time: it reaches the planner at the next cycle, whole or not at all. A value the planner
 cannot take now is refused with the reason. Unknown ids are not answered (there is no value
-to report) but said to the pilot. Accepted values can be written back to the config file
-(`persist`).
+to report); a PARAM_SET of one addressed to our component (not to all) is said to the pilot,
+as an id asked of every component is most likely another's (the autopilot's). Accepted
+values can be written back to the config file (`persist`).
 """
 
 from __future__ import annotations
@@ -148,10 +149,13 @@ class ParamServer:
         if mtype == "PARAM_REQUEST_LIST":
             for i in range(len(PARAMS)):
                 self._send_value(i)
-        elif mtype == "PARAM_REQUEST_READ":
-            self._read(int(msg.param_index), _param_id(msg.param_id))
+            return True
+        # an id we do not have, asked of every component, is some other component's
+        mine = int(msg.target_component) == self.ids.component_id
+        if mtype == "PARAM_REQUEST_READ":
+            self._read(int(msg.param_index), _param_id(msg.param_id), mine)
         else:
-            self._set(_param_id(msg.param_id), float(msg.param_value), int(msg.param_type))
+            self._set(_param_id(msg.param_id), float(msg.param_value), int(msg.param_type), mine)
         return True
 
     def _for_us(self, target_system: int, target_component: int) -> bool:
@@ -161,7 +165,7 @@ class ParamServer:
             ids.component_id,
         )
 
-    def _read(self, index: int, param_id: str) -> None:
+    def _read(self, index: int, param_id: str, mine: bool) -> None:
         if index >= 0:
             if index < len(PARAMS):
                 self._send_value(index)
@@ -170,14 +174,18 @@ class ParamServer:
             return
         i = _BY_ID.get(param_id)
         if i is None:
-            self._unknown(param_id, "read")
+            if mine:
+                self.counters["unknown"] += 1
+                log.info("PARAM_REQUEST_READ %r: no such parameter", param_id)
             return
         self._send_value(i)
 
-    def _set(self, param_id: str, value: float, param_type: int) -> None:
+    def _set(self, param_id: str, value: float, param_type: int, mine: bool) -> None:
         i = _BY_ID.get(param_id)
         if i is None:
-            self._unknown(param_id, "set")
+            if mine:
+                self.counters["unknown"] += 1
+                self.say(f"cannot set {param_id!r}: no such parameter", Severity.WARNING)
             return
         spec = PARAMS[i]
         old = self.value(i)
@@ -199,10 +207,6 @@ class ParamServer:
                 self.say(f"{param_id} set to {self.value(i):g} (was {old:g})", Severity.INFO)
                 self._persist({spec.key: self.value(i)})
         self._send_value(i)  # the value in force: the new one, or the old one when refused
-
-    def _unknown(self, param_id: str, what: str) -> None:
-        self.counters["unknown"] += 1
-        self.say(f"cannot {what} {param_id!r}: no such parameter", Severity.WARNING)
 
     def _persist(self, changes: Mapping[str, float]) -> None:
         if self.persist is None:
