@@ -182,11 +182,10 @@ def service_parts(cycles: int = 2000) -> dict[str, float]:
     `MavCodec` decoding the 13 frames and encoding a setpoint), telemetry validation of the
     13 messages, the geodesy of a cycle (position to ENU, setpoint to geodetic) and the
     flight-log record's encoding."""
-    from companion.geo import GeoPoint
+    from companion.geo import GeoPoint, LocalFrame
     from companion.planner.sensors import mav_orientation_for_boresight
     from companion.service.codec import MavCodec
     from companion.service.flightlog import dumps_record
-    from companion.service.geodesy import TangentPlane
     from companion.service.setpoints import SetpointFrame, position_target
     from companion.service.telemetry import Telemetry
 
@@ -210,7 +209,7 @@ def service_parts(cycles: int = 2000) -> dict[str, float]:
 
     inputs = [frames(k) for k in range(cycles)]
     codec, tel = MavCodec(), Telemetry(table)
-    plane = TangentPlane(GeoPoint(47.397742, 8.545594, 488.0))
+    plane = LocalFrame(GeoPoint(47.397742, 8.545594, 488.0))
     rng = np.random.default_rng(0)
     record = {
         "type": "cycle", "t": 1.0, "health": "active", "own": "engaged", "verdict": "run",

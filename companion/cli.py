@@ -176,6 +176,11 @@ def _parser() -> argparse.ArgumentParser:
         action="store_true",
         help="no live status line (there is none when stderr is not a terminal)",
     )
+    run.add_argument(
+        "--persist-params",
+        action="store_true",
+        help="write parameter changes made in flight (PARAM_SET) back into the config file",
+    )
 
     check = sub.add_parser("check-config", help="validate a service config file and exit")
     check.add_argument("config", type=ConfigFile())
@@ -327,7 +332,13 @@ def main(argv: Sequence[str] | None = None) -> int:
         if args.command == "run":
             from companion.service import main as service_main
 
-            return service_main(args.config, args.connection, args.log_level, quiet=args.quiet)
+            return service_main(
+                args.config,
+                args.connection,
+                args.log_level,
+                quiet=args.quiet,
+                persist_params=args.persist_params,
+            )
         if args.command == "check-config":
             from companion.config import check_config
 

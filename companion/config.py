@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import math
 import sys
+from collections.abc import Mapping
 from pathlib import Path
 from typing import Annotated, Any, Literal, TextIO
 
@@ -31,6 +32,7 @@ import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
 from companion.connection import LinkSpec, parse_connection
+from companion.geo import latlon_to_enu_xy
 from companion.planner.sensors import SensorTable
 from companion.tuning import PlannerConfig, SensorConfig, include_sensors_file, sensor_table
 
@@ -210,15 +212,9 @@ MIN_ROUTE_SPACING_M = 1.0
 
 
 def latlon_points_xy(points: list[tuple[float, float]]) -> list[tuple[float, float]]:
-    """(lat, lon) degrees -> east/north metres from the first point (small-area, sphere)."""
-    lat0, lon0 = points[0]
-    r = 6_371_000.0
-    out = []
-    for lat, lon in points:
-        dlon = (lon - lon0 + 180.0) % 360.0 - 180.0
-        east = math.radians(dlon) * r * math.cos(math.radians(0.5 * (lat + lat0)))
-        out.append((east, math.radians(lat - lat0) * r))
-    return out
+    """(lat, lon) degrees -> east/north metres from the first point, in the tangent plane
+    at it (`companion.geo`, the one geodesy)."""
+    return latlon_to_enu_xy(points)
 
 
 def route_problem(xy: list[tuple[float, float]], origin_is_home: bool = True) -> str:
@@ -429,6 +425,20 @@ def format_errors(exc: ValidationError) -> list[str]:
     return lines
 
 
+def planner_with(planner: PlannerConfig, changes: Mapping[str, float]) -> PlannerConfig:
+    """`planner` with `changes` (its own key names and units) applied, validated by the rules
+    of the file's `planner:` section (the same model, so no second copy of a range).
+    ValueError names each problem as check-config does, e.g. ``planner.h_d_m: expected a
+    number greater than 0, found -1.0``."""
+    unknown = sorted(set(changes) - set(PlannerConfig.model_fields))
+    if unknown:
+        raise ValueError(f"planner: no key {', '.join(unknown)}")
+    try:
+        return PlannerConfig.model_validate({**planner.model_dump(), **changes})
+    except ValidationError as exc:
+        raise ValueError("; ".join(f"planner.{line}" for line in format_errors(exc))) from None
+
+
 def parse_config(data: Any, path: Path | None = None) -> ServiceConfig:
     """Validate already-parsed YAML; ConfigError lists every problem."""
     if not isinstance(data, dict):
@@ -589,4 +599,5 @@ __all__ = [
     "format_errors",
     "load_config",
     "parse_config",
+    "planner_with",
 ]

@@ -81,11 +81,16 @@ def test_simulate_json_prints_the_metrics_document(
     assert not (out / "fig6.png").exists()
 
 
-@pytest.mark.parametrize(("extra", "quiet"), [([], False), (["--quiet"], True)])
-def test_run_passes_quiet(extra: list[str], quiet: bool, monkeypatch: pytest.MonkeyPatch) -> None:
+@pytest.mark.parametrize(
+    ("extra", "quiet", "persist"),
+    [([], False, False), (["--quiet"], True, False), (["--persist-params"], False, True)],
+)
+def test_run_passes_quiet_and_persist_params(
+    extra: list[str], quiet: bool, persist: bool, monkeypatch: pytest.MonkeyPatch
+) -> None:
     import companion.service
 
     seen: list[dict[str, object]] = []
     monkeypatch.setattr(companion.service, "main", lambda *a, **k: seen.append(k) or 0)
     assert cli.main(["run", "--config", str(CONFIG), *extra]) == 0
-    assert seen == [{"quiet": quiet}]
+    assert seen == [{"quiet": quiet, "persist_params": persist}]

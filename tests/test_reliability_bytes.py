@@ -3,8 +3,9 @@
 Every datagram goes through what a received UDP datagram goes through (size check, codec in
 robust mode, routing by source, telemetry validation). For each: no exception escapes, a
 non-empty datagram moves at least one codec/link counter (nothing vanishes silently), the
-input cache only ever holds finite in-range values, and the only thing the receive path
-ever sends is a TIMESYNC answer (it commands nothing). With signing on, not one fuzzed frame
+input cache only ever holds finite in-range values, and the only things the receive path
+ever sends are TIMESYNC answers and PARAM_VALUE answers to parameter requests (it commands
+nothing, and no planner value changes). With signing on, not one fuzzed frame
 is accepted.
 
 Counts: the three tests feed 64 000 + 25 600 + 12 800 = 102 400 inputs (asserted). The long
@@ -83,7 +84,9 @@ def check_datagrams(scale: int) -> ReceivePath:
     assert c.get("conn.other_system", 0) + c.get("conn.other_component", 0) > 0
     assert c.get("conn.handler_errors", 0) == 0
     assert c["codec.parser_errors"] == 0
-    assert path.sent_types() <= {"TIMESYNC"}  # answers to TIMESYNC requests, nothing else
+    # answers to TIMESYNC requests and to parameter requests (PARAM_VALUE), nothing else
+    assert path.sent_types() <= {"TIMESYNC", "PARAM_VALUE"}
+    assert path.svc.host.tuning == path.cfg.planner  # no fuzzed PARAM_SET changed a value
     return path
 
 

@@ -260,7 +260,7 @@ def test_set_desired_height_reaches_the_planner_and_rejects_nonsense() -> None:
     r.run(0.1)
     r.host.set_desired_height(3.5)
     assert r.box.made[0].h_d == 3.5 and r.host.h_d_m == 3.5
-    with pytest.raises(ValueError, match="positive"):
+    with pytest.raises(ValueError, match="h_d_m: expected a number greater than 0"):
         r.host.set_desired_height(-1.0)
     assert r.host.h_d_m == 3.5
 

@@ -1,48 +1,14 @@
-"""The service's per-cycle geodesy against pymap3d, and the telemetry clock's O(1) median."""
+"""The telemetry clock's O(1) median (the geodesy's tests are in test_geo.py)."""
 
 from __future__ import annotations
 
-import math
 import random
 
 import pytest
 
-from companion.geo import GeoPoint, LocalFrame
 from companion.service.codec import mavlink2
-from companion.service.geodesy import TangentPlane, ecef_to_geodetic, geodetic_to_ecef
 from companion.service.telemetry import Telemetry
 from tests.service_fakes import make_config
-
-
-def _metres(a: GeoPoint, b: GeoPoint) -> float:
-    """Distance between two nearby geodetic points, m (small-angle, ample for mm checks)."""
-    north = math.radians(a.lat_deg - b.lat_deg) * 6_378_137.0
-    east = math.radians(a.lon_deg - b.lon_deg) * 6_378_137.0 * math.cos(math.radians(a.lat_deg))
-    return math.sqrt(north**2 + east**2 + (a.alt_m - b.alt_m) ** 2)
-
-
-@pytest.mark.parametrize("seed", [0, 1, 2])
-def test_tangent_plane_equals_pymap3d_within_50_km(seed: int) -> None:
-    rnd = random.Random(seed)
-    for _ in range(300):
-        origin = GeoPoint(rnd.uniform(-85, 85), rnd.uniform(-180, 180), rnd.uniform(-400, 4000))
-        ref, fast = LocalFrame(origin), TangentPlane(origin)
-        enu = (rnd.uniform(-50e3, 50e3), rnd.uniform(-50e3, 50e3), rnd.uniform(-500, 500))
-        a, b = ref.to_geodetic(*enu), fast.to_geodetic(*enu)
-        assert _metres(a, b) < 1e-3
-        assert a == b  # the same operations as pymap3d: bit for bit (lockstep flights unchanged)
-        back_ref, back_fast = ref.to_enu(a), fast.to_enu(a)
-        assert back_ref == back_fast
-        assert max(abs(x - y) for x, y in zip(back_fast, enu, strict=True)) < 1e-3
-
-
-def test_ecef_round_trip_at_poles_equator_and_antimeridian() -> None:
-    for lat, lon, alt in [(90.0, 0.0, 10.0), (-90.0, 0.0, 0.0), (0.0, 180.0, 5.0), (0.0, 0.0, 0.0)]:
-        la, lo, al = ecef_to_geodetic(*geodetic_to_ecef(lat, lon, alt))
-        assert la == pytest.approx(lat, abs=1e-9)
-        assert al == pytest.approx(alt, abs=1e-4)
-        if abs(lat) < 90.0:
-            assert math.cos(math.radians(lo - lon)) == pytest.approx(1.0, abs=1e-12)
 
 
 def _brute_expected(t: Telemetry, t_rx: float) -> float | None:

@@ -7,6 +7,8 @@ only messages from the autopilot's (system id, component id) are passed on, ever
 is dropped and counted (TIMESYNC requests are answered before the lock too: a lockstep
 simulator waits for them before it sends its first heartbeat). Waiters registered with
 `expect` (command acks, mission items) see each accepted message before the general handler.
+Requests to our own component (`on_request`: the parameter protocol) come from anyone, a
+ground station most often, and are offered before that filtering.
 """
 
 from __future__ import annotations
@@ -58,6 +60,9 @@ class Connection:
         self.on_unlocked: Handler | None = None
         self.on_other: Handler | None = None
         """HEARTBEATs of other systems after the lock (to notice a second autopilot)."""
+        self.on_request: Callable[[MAVLinkMessage], bool] | None = None
+        """Offered every message first, from any source (a ground station's PARAM_* requests
+        to our component); True when it took the message."""
         self.counters: Counter[str] = Counter()
         self._waiters: list[_Waiter] = []
         self._peer: Peer = None
@@ -89,6 +94,8 @@ class Connection:
 
     def _route(self, msg: MAVLinkMessage, t_rx: float, peer: Peer) -> None:
         src_sys, src_comp = msg.get_srcSystem(), msg.get_srcComponent()
+        if self.on_request is not None and self.on_request(msg):
+            return
         if self.target_system is None:
             mtype = msg.get_type()
             if mtype == "HEARTBEAT" and self.on_unlocked is not None:

@@ -13,6 +13,7 @@ from typing import TextIO
 
 from companion.config import ConfigError, load_config
 from companion.service.link import open_link
+from companion.service.params import persist_to
 from companion.service.service import Service
 
 
@@ -84,12 +85,15 @@ def main(
     connection: str | None = None,
     log_level: str | None = None,
     quiet: bool = False,
+    persist_params: bool = False,
 ) -> int:
     """`companion run --config FILE`: exit 0 on SIGTERM/SIGINT, 2 on a bad config, 3 when the
     link's port cannot be had (in use), 1 on another error.
 
     connection, log_level: the command line's `--connection` and `--log-level`; quiet: no
     status line on a terminal (`--quiet`; there is none when stderr is not a terminal).
+    persist_params: write parameter changes accepted in flight (PARAM_SET) back into the
+    config file's `planner:` section (`--persist-params`).
     """
     try:
         cfg = load_config(Path(config_path), connection)
@@ -100,6 +104,8 @@ def main(
         return 2
     configure_logging(log_level or cfg.logging.level)
     service = Service(cfg, open_link(cfg.link.spec))
+    if persist_params:
+        service.params.persist = persist_to(Path(config_path))
     status = terminal_status(quiet)
     if status is not None:
         status.attach()

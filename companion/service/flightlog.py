@@ -16,6 +16,8 @@ file is a header record; then records by `type`:
     {"type": "route", "t": .., "points": [[x, y], ...], "start_heading_rad": ..,
      "arrival_heading_rad": ..}   (each time the planner starts on a route)
     {"type": "counters", "t": .., "counters": {name: n, ...}}
+    {"type": "planner", "t": .., "planner": {...}}   (the `planner:` section in force after
+     a change in flight, e.g. a PARAM_SET)
 
 Frames as the planner's: local ENU metres anchored at home, yaw counter-clockwise from east,
 ranges in metres with 0 = nothing detected and null = missing/stale. Non-finite numbers are

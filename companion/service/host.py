@@ -3,8 +3,18 @@
 Owns the local frame (ENU metres at home, frozen at the first take-over), the route's base
 points in it, the planner (built on engage, rebuilt on a restart far from X_d), the shift that
 keeps the planner's frame continuous through accepted position jumps, progress along the base
-points, the route's end, the hold point, and H_d at run time (the config's value, changed only
-by `set_desired_height`, passed to every planner built).
+points, the route's end, the hold point, and the planner's parameters at run time, H_d among
+them (the config's values, changed only by `retune`, validated by the config's own rules,
+passed to every planner built).
+
+A change reaches the planner at the next cycle, whole or not at all: a new H_d that leaves
+eq. (7)'s side threshold min(arctan(H_d / D_min), phi_max) as it was goes to the running
+planner (`set_desired_height`, which ramps to it); any other change rebuilds the planner from
+the vehicle's position with the new parameters (as a restart does: the base points not yet
+passed, X_d at the vehicle, the speed from 0), so every value derived from them (thresholds,
+the speed limits, the clearance cut-off) is computed afresh. A rebuild is refused while the
+planner is off the route (going around, shifted, retreating, or still searching): it would
+forget the correction it is flying.
 
 It never touches the link: the control cycle calls `step` or `hold_setpoint` and sends what
 they return.
@@ -16,25 +26,25 @@ import asyncio
 import logging
 import math
 from collections import Counter
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, replace
 from typing import Any, Protocol
 
 import numpy as np
 
-from companion.config import ServiceConfig
-from companion.geo import GeoPoint
+from companion.config import ServiceConfig, planner_with
+from companion.geo import GeoPoint, LocalFrame
 from companion.planner.frames import attitude_ned_to_enu, wrap_pi
 from companion.planner.params import PlannerParams
 from companion.planner.route import Route
 from companion.planner.sensors import SensorTable
-from companion.planner.types import FloatArray, Setpoint, StepResult, VehicleState
+from companion.planner.types import FloatArray, PathMode, Setpoint, StepResult, VehicleState
 from companion.service.clock import Clock
 from companion.service.flightlog import FlightLogWriter
-from companion.service.geodesy import TangentPlane
 from companion.service.mission import latlon_to_xy
 from companion.service.statustext import Severity
 from companion.service.telemetry import Telemetry
+from companion.tuning import PlannerConfig
 
 log = logging.getLogger("companion.service")
 
@@ -50,6 +60,10 @@ class PlannerLike(Protocol):
     def step(self, state: VehicleState, ranges_m: FloatArray, dt_s: float) -> StepResult: ...
 
     def set_desired_height(self, h_d_m: float) -> None: ...
+
+
+class RetuneRefusedError(ValueError):
+    """A valid parameter change the planner cannot take now (nothing was changed)."""
 
 
 PlannerFactory = Callable[[PlannerParams, SensorTable, Route, FloatArray], PlannerLike]
@@ -70,6 +84,12 @@ class HoldPoint:
 
     position_enu: FloatArray
     yaw_rad: float
+
+
+def height_only(old: PlannerParams, new: PlannerParams) -> bool:
+    """True when `new` differs from `old` in H_d at most and leaves eq. (7)'s side threshold
+    as it was: a running planner takes that with `set_desired_height`."""
+    return replace(old, h_d_m=new.h_d_m) == new and old.side_threshold_rad == new.side_threshold_rad
 
 
 def finite_setpoint(sp: Setpoint) -> bool:
@@ -116,10 +136,12 @@ class PlannerHost:
         self.period_s = period_s
         self.sensor_max_age_s = sensor_max_age_s
         self._on_finish = on_finish
-        self.params: PlannerParams = cfg.planner.to_params()
+        self.tuning: PlannerConfig = cfg.planner
+        """The `planner:` section in force (validated; changed only by `retune`)."""
+        self.params: PlannerParams = self.tuning.to_params()
         """The planner's parameters; `params.h_d_m` is H_d at run time (its one owner)."""
 
-        self.frame: TangentPlane | None = None
+        self.frame: LocalFrame | None = None
         self.frame_frozen = False
         self._frame_key: tuple[GeoPoint, int] | None = None
         self.route_source_points: FloatArray | None = None
@@ -139,7 +161,9 @@ class PlannerHost:
         self._build_gen = 0
         self._build_task: asyncio.Task[Any] | None = None
         self.route_error = ""
-        self._built_h_d = self.params.h_d_m
+        self._built_params = self.params
+        self._rebuild_due = False
+        """Parameters changed beyond what the running planner can take: rebuild next step."""
         self.shift = np.zeros(3)
         """Sum of the accepted position jumps: planner frame = estimate - shift (ENU m)."""
         self._last_planner_xd: FloatArray | None = None
@@ -153,12 +177,50 @@ class PlannerHost:
         return self.params.h_d_m
 
     def set_desired_height(self, h_d_m: float) -> None:
-        """Change H_d in flight; the planner ramps to it."""
-        if not (math.isfinite(h_d_m) and h_d_m > 0):
-            raise ValueError(f"h_d_m must be positive, got {h_d_m}")
-        self.params = replace(self.params, h_d_m=h_d_m)
-        if self.planner is not None:
-            self.planner.set_desired_height(h_d_m)
+        """Change H_d in flight (metres); see `retune`."""
+        self.retune({"h_d_m": h_d_m})
+
+    def retune(self, changes: Mapping[str, float]) -> None:
+        """Change planner parameters in flight (`planner:` key names, their units); they
+        apply at the next cycle (see the module's docstring). ValueError, with nothing
+        changed, when a value breaks the config's rules (the message names the key) or the
+        planner cannot take it now (`RetuneRefusedError`)."""
+        tuning = planner_with(self.tuning, changes)
+        params = tuning.to_params()
+        if params == self.params:
+            self.tuning = tuning
+            return
+        smooth = height_only(self.params, params)
+        if self.planner is not None and not smooth:
+            why = self._off_route()
+            if why:
+                raise RetuneRefusedError(f"the planner is {why}: retry on the route")
+        self.tuning, self.params = tuning, params
+        if self.flight_log is not None:
+            self.flight_log.write(
+                {
+                    "type": "planner",
+                    "t": self.clock.now(),
+                    "planner": tuning.model_dump(mode="json"),
+                }
+            )
+        if self.planner is None:
+            return  # the next planner built takes them (`_planner_built` if one is building)
+        if smooth:
+            self.planner.set_desired_height(params.h_d_m)
+        else:
+            self._rebuild_due = True
+
+    def _off_route(self) -> str:
+        """Why the running planner is off its route ("" when on it)."""
+        if self._rebuild_due or self.last_result is None:
+            return ""
+        d = self.last_result.diagnostics
+        if d.searching:
+            return "searching for a path"
+        if d.mode is not PathMode.ROUTE:
+            return f"off the route ({d.mode.value})"
+        return ""
 
     # --- frame and state -------------------------------------------------------------------
 
@@ -172,7 +234,7 @@ class PlannerHost:
         if key == self._frame_key:
             return
         self._frame_key = key
-        self.frame = TangentPlane(origin)
+        self.frame = LocalFrame(origin)
         r = self.cfg.route
         if r.source == "config":
             if r.points is not None:
@@ -267,7 +329,9 @@ class PlannerHost:
         self.planner = None
         self._build_gen += 1
         gen = self._build_gen
-        self._built_h_d = self.params.h_d_m
+        self._built_params = self.params
+        self._rebuild_due = False
+        self.last_result = None
         self._seg_start = here.copy()
         self._planner_t = None
         self.last_setpoint = None  # X_d starts at the vehicle: nothing to compare on resume
@@ -307,8 +371,11 @@ class PlannerHost:
             return
         self.planner = planner
         self.route_error = ""
-        if self.params.h_d_m != self._built_h_d:  # changed while it was being built
-            planner.set_desired_height(self.params.h_d_m)
+        if self.params != self._built_params:  # changed while it was being built
+            if height_only(self._built_params, self.params):
+                planner.set_desired_height(self.params.h_d_m)
+            else:
+                self._rebuild_due = True
         if self.flight_log is not None:
             self.flight_log.write(
                 {
@@ -348,6 +415,9 @@ class PlannerHost:
         if estimate is None:
             return None
         state = self._to_planner(estimate)
+        if self._rebuild_due and self.planner is not None:
+            log.info("planner parameters changed: restarting the planner here")
+            self._start_planner(state)
         if (
             self._planner_t is None
             and self.planner is not None
@@ -450,6 +520,8 @@ __all__ = [
     "PlannerFactory",
     "PlannerHost",
     "PlannerLike",
+    "RetuneRefusedError",
     "default_planner_factory",
     "finite_setpoint",
+    "height_only",
 ]

@@ -21,7 +21,6 @@ from companion.geo import GeoPoint, LocalFrame
 from companion.planner.types import FloatArray
 from companion.service.codec import MAVLinkMessage, mavlink2
 from companion.service.connection import Connection
-from companion.service.geodesy import TangentPlane
 from companion.service.modes import AutopilotKind
 from companion.service.telemetry import valid_lat_lon
 
@@ -131,7 +130,7 @@ def mission_waypoints(items: list[MissionItem], kind: AutopilotKind) -> list[tup
     return pts
 
 
-def latlon_to_xy(points: list[tuple[float, float]], frame: LocalFrame | TangentPlane) -> FloatArray:
+def latlon_to_xy(points: list[tuple[float, float]], frame: LocalFrame) -> FloatArray:
     """(lat, lon) degrees -> local ENU (x, y) metres in `frame`, shape (n, 2)."""
     alt = frame.origin.alt_m
     xy = [frame.to_enu(GeoPoint(lat, lon, alt))[:2] for lat, lon in points]

@@ -18,7 +18,8 @@ runs if one is due, its setpoint is sent, and only then is the TIMESYNC answered
 faster-than-real-time simulation sees exactly the cycles a real-time flight would.
 
 This module wires the parts, runs the tasks (heartbeat, supervisor, housekeeping, cycle
-timer), dispatches received messages, and answers `status()`.
+timer), dispatches received messages (a ground station's parameter requests to
+`params.py`), and answers `status()`.
 """
 
 from __future__ import annotations
@@ -52,6 +53,7 @@ from companion.service.identity import Health, heartbeat_message
 from companion.service.link import Link
 from companion.service.modes import Ownership
 from companion.service.notify import SystemdNotifier
+from companion.service.params import ParamServer
 from companion.service.signing import SigningKeyError, SigningState, load_key, timestamp_now
 from companion.service.status import PlannerState, SensorFreshness, ServiceStatus, status_line
 from companion.service.statustext import Severity, StatusTexts
@@ -209,6 +211,9 @@ class Service:
             boot_s=self.clock.now(),
             sim_time=self.sim_time,
         )
+        self.params = ParamServer(self.host, self.codec, self.conn.send, self._say)
+        """The planner's tunables as MAVLink parameters of our component (`params.py`)."""
+        self.conn.on_request = self.params.handle
         self.conn.on_message = self._on_message
         self.conn.on_unlocked = self.finder.on_unlocked
         self.conn.on_other = self.finder.on_other

@@ -16,7 +16,6 @@ from companion.geo import LocalFrame
 from companion.planner.frames import enu_to_ned, yaw_enu_to_ned
 from companion.planner.types import FloatArray
 from companion.service.codec import MAVLinkMessage, mavlink2
-from companion.service.geodesy import TangentPlane
 
 MAV_FRAME_GLOBAL_INT: int = mavlink2.MAV_FRAME_GLOBAL_INT
 MAV_FRAME_GLOBAL_RELATIVE_ALT_INT: int = mavlink2.MAV_FRAME_GLOBAL_RELATIVE_ALT_INT
@@ -41,7 +40,7 @@ def position_target(
     velocity_enu: FloatArray,
     yaw_enu_rad: float,
     *,
-    frame: LocalFrame | TangentPlane,
+    frame: LocalFrame,
     mav_frame: SetpointFrame,
     home_alt_amsl_m: float,
     time_boot_ms: int,
