@@ -489,9 +489,14 @@ class Service:
             tc1 = max(1, int(clock.now() * 1e9))
             self.conn.send(mavlink2.MAVLink_timesync_message(tc1, ts1))
             return
-        clock.set(ts1 * 1e-9)
+        clock.set(ts1 * 1e-9)  # wakes what sleeps on the service clock (the supervisor)
         self._sim_tick(clock.now())
-        self.conn.send(mavlink2.MAVLink_timesync_message(max(1, ts1), ts1))
+        answer = mavlink2.MAVLink_timesync_message(max(1, ts1), ts1)
+        # Answer only after the tasks this tick woke have run up to their next wait, so what
+        # they send (commands) lands in this tick: the simulator waits for the answer, and
+        # the same scenario gives the same flight whatever the machine's load.
+        loop = asyncio.get_running_loop()
+        loop.call_soon(loop.call_soon, self.conn.send, answer)
 
     # === tasks =============================================================================
 
