@@ -11,8 +11,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from sim.fly import fly_async
-from sim.scenario import load_scenario
+from companion.harness.fly import fly_async
+from companion.sim.scenario import load_scenario
 
 pytestmark = [pytest.mark.sim, pytest.mark.slow, pytest.mark.timeout(240)]
 
