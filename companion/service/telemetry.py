@@ -40,6 +40,7 @@ from companion.planner.sensors import (
 )
 from companion.planner.types import FloatArray
 from companion.service.codec import MAVLinkMessage
+from companion.service.pairing import AttitudeHistory, Pairing, pair_ranges
 
 log = logging.getLogger("companion.service.telemetry")
 
@@ -240,6 +241,8 @@ class Telemetry:
         """Forget everything but the counters (autopilot reboot or a new autopilot)."""
         self.heartbeat: Heartbeat | None = None
         self.attitude: Attitude | None = None
+        self.attitudes = AttitudeHistory()
+        """The last second of attitudes by stamp, rate-gated (`pairing.py`)."""
         self.position: Position | None = None
         self.home: Home | None = None
         self.ranges: list[RangeReading | None] = [None] * len(self.sensors)
@@ -421,6 +424,8 @@ class Telemetry:
         if not self._in_order("ATTITUDE", int(msg.time_boot_ms), t_rx):
             return False
         self.attitude = Attitude(r, p, y, int(msg.time_boot_ms), t_rx)
+        if msg.time_boot_ms and not self.attitudes.add(int(msg.time_boot_ms), r, p, y):
+            self._count("attitude_rate_untrusted", logging.WARNING, f" (t {msg.time_boot_ms} ms)")
         return True
 
     def _global_position(self, msg: MAVLinkMessage, t_rx: float) -> bool:
@@ -592,10 +597,12 @@ class Telemetry:
         if len(history) < n:
             return reading
         ordered = sorted(history, key=lambda r: r.distance_m if r.distance_m > 0 else math.inf)
-        median = ordered[n // 2].distance_m
-        if median != reading.distance_m:
+        median = ordered[n // 2]
+        if median.distance_m != reading.distance_m:
             self._count("range_filtered")
-        return RangeReading(median, reading.time_boot_ms, reading.t_rx)
+        # the median keeps the stamp of the reading it is (its attitude is that time's); its
+        # receipt time is the newest reading's (the sensor is as fresh as its last report)
+        return RangeReading(median.distance_m, median.time_boot_ms, reading.t_rx)
 
     # -- queries ----------------------------------------------------------------------------
 
@@ -617,6 +624,23 @@ class Telemetry:
                 else math.nan
             )
         return r
+
+    def paired_ranges(self, now: float, max_age_s: float) -> Pairing:
+        """`range_vector` paired with the attitude of the ranges' time (`pairing.py`):
+        readings unusable with it are NaN this cycle; counted as input.range_unpaired and
+        input.cycle_attitude_untrusted."""
+        ranges = self.range_vector(now, max_age_s)
+        stamps = [0 if r is None else r.time_boot_ms for r in self.ranges]
+        att = self.attitude
+        latest = (
+            None if att is None or not att.time_boot_ms else self.attitudes.at(att.time_boot_ms)
+        )
+        pairing = pair_ranges(self.attitudes, ranges, stamps, latest)
+        if pairing.untrusted:
+            self._count("cycle_attitude_untrusted", logging.WARNING)
+        elif pairing.unpaired:
+            self.counters["range_unpaired"] += pairing.unpaired
+        return pairing
 
     def stale_sensors(self, now: float, max_age_s: float) -> list[int]:
         """Indices (table order) of sensors with no reading within max_age_s."""
