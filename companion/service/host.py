@@ -130,6 +130,8 @@ class PlannerHost:
         self.next_point = 0
         self._seg_start: FloatArray | None = None
         self.last_result: StepResult | None = None
+        self.step_state: VehicleState | None = None
+        """The state (service frame) the last `step` used: the attitude of its ranges."""
         self.last_setpoint: Setpoint | None = None
         """The last setpoint sent (planner or hold), service frame."""
         self.route_finished = asyncio.Event()
@@ -352,6 +354,7 @@ class PlannerHost:
         # them into points with the state's attitude
         pairing = self.tel.paired_ranges(now, self.sensor_max_age_s)
         estimate = self.vehicle_state(pairing.attitude)
+        self.step_state = estimate
         if estimate is None:
             return None
         state = self._to_planner(estimate)
