@@ -60,9 +60,9 @@ async def test_inputs_slower_than_the_loop_leave_the_timer_as_deadline() -> None
 
 
 async def test_a_sensor_gone_quiet_is_not_waited_for() -> None:
-    """The burst a cycle waits for is that of the sensors fresh at the last cycle: once a
-    sensor has gone quiet (past sensor_max_age_s) the others' bursts start the cycles again,
-    not the deadline."""
+    """The burst a cycle waits for is that of the sensors that reported in the last two:
+    once a sensor has gone quiet the others' bursts start the cycles again, not the
+    deadline."""
     a, b = memory_pair()
     svc = Service(make_config(), a, planner_factory=PlannerBox(), notifier=SystemdNotifier({}))
     ap = FakeAutopilot(b, rate_hz=40.0)

@@ -110,9 +110,11 @@ class Service:
         self._trigger: asyncio.Future[bool | None] | None = None
         """Set when the inputs the next cycle waits for have all arrived (real time only)."""
         self._awaited: set[int] = set()
-        """The DISTANCE_SENSOR burst the next cycle waits for: the ids of the configured
-        sensors with a fresh reading when the last cycle ran."""
+        """The DISTANCE_SENSOR burst the next cycle waits for: the ids of the sensors that
+        reported in each of the last two (a sensor slower than the loop, or one whose datagram
+        was lost, is not waited for: a lossy link must not hold the loop to its deadline)."""
         self._arrived: set[int] = set()
+        self._arrived_before: set[int] = set()
         self._burst_ms = 0
         """The newest stamp of the burst so far (autopilot ms; 0: not stamped)."""
         self._attitude_covers = False
@@ -546,7 +548,8 @@ class Service:
 
     def _next_burst(self) -> None:
         """Inputs from now on count for the next cycle's burst."""
-        self._arrived = set()
+        self._awaited = self._arrived & self._arrived_before
+        self._arrived_before, self._arrived = self._arrived, set()
         self._burst_ms = 0
         self._attitude_covers = False
         self._attitude_streams, self._attitude_seen = self._attitude_seen, False
@@ -575,13 +578,6 @@ class Service:
             # the rate bound: a cycle spends one period of credit, credit accrues with time
             credit = min(credit + (start - last), cap) - period
             last = start
-            # the next cycle waits for a burst of the sensors fresh now (one that has gone
-            # quiet is not waited for; the deadline runs the cycle when one is late)
-            self._awaited = {
-                self.sensors.specs[i].sensor_id
-                for i, r in enumerate(self.tel.ranges)
-                if r is not None and start - r.t_rx <= self.limits.sensor_max_age_s
-            }
             self._trigger = trigger = loop.create_future()
             self.cycle.safe_tick(start)
             if self._burst_complete():  # it came while the rate bound held the loop back
