@@ -180,8 +180,8 @@ def service_parts(cycles: int = 2000) -> dict[str, float]:
     """Microseconds per cycle of the service's own work on one cycle's inputs, in process,
     part by part (the planner's step is bench/planner.py's): the codec (the service's
     `MavCodec` decoding the 13 frames and encoding a setpoint), telemetry validation of the
-    13 messages, the geodesy of a cycle (position to ENU, setpoint to geodetic) and the
-    flight-log record's encoding."""
+    13 messages, pairing the ranges with the attitude of their time, the geodesy of a cycle
+    (position to ENU, setpoint to geodetic) and the flight-log record's encoding."""
     from companion.geo import GeoPoint, LocalFrame
     from companion.planner.sensors import mav_orientation_for_boresight
     from companion.service.codec import MavCodec
@@ -220,7 +220,7 @@ def service_parts(cycles: int = 2000) -> dict[str, float]:
         "min_range": 3.5, "phi_star": 0.2, "phi_star_threshold": 0.5, "phi_d": 0.1,
         "v_ref": 1.0, "replanned": False, "finished": False, "events": [],
     }  # fmt: skip
-    t = {"codec": 0, "telemetry": 0, "geodesy": 0, "flight_log": 0}
+    t = {"codec": 0, "telemetry": 0, "pairing": 0, "geodesy": 0, "flight_log": 0}
     accepted = 0
     for k, fs in enumerate(inputs):
         t_rx = 1.0 + 0.02 * k
@@ -229,6 +229,8 @@ def service_parts(cycles: int = 2000) -> dict[str, float]:
         t1 = time.perf_counter_ns()
         accepted += sum(tel.update(m, t_rx) is not None for m in msgs)
         t2 = time.perf_counter_ns()
+        tel.paired_ranges(t_rx, 0.5)
+        t2p = time.perf_counter_ns()
         pos = tel.position
         assert pos is not None
         plane.to_enu(GeoPoint(pos.lat_deg, pos.lon_deg, pos.alt_amsl_m))
@@ -244,7 +246,8 @@ def service_parts(cycles: int = 2000) -> dict[str, float]:
         t5 = time.perf_counter_ns()
         t["codec"] += (t1 - t0) + (t4 - t3)
         t["telemetry"] += t2 - t1
-        t["geodesy"] += t3 - t2
+        t["pairing"] += t2p - t2
+        t["geodesy"] += t3 - t2p
         t["flight_log"] += t5 - t4
     if accepted != cycles * 13:
         raise RuntimeError(f"telemetry accepted {accepted} of {cycles * 13} messages")
@@ -448,6 +451,7 @@ def run(quick: bool = False) -> Section:
     for part, label in (
         ("codec", "the service's codec: decode 13 frames + encode 1"),
         ("telemetry", "telemetry validation of 13 messages"),
+        ("pairing", "ranges paired with the attitude of their time"),
         ("geodesy", "geodesy of a cycle (position -> ENU, setpoint -> lat/lon)"),
         ("flight_log", "flight-log record encoding"),
     ):

@@ -64,7 +64,7 @@ async def flying() -> AsyncIterator[tuple[Service, FakeAutopilot, int]]:
     link = UdpInLink("127.0.0.1", 0)
     svc = Service(make_config(), link, planner_factory=PlannerBox(), notifier=SystemdNotifier({}))
     task = asyncio.create_task(svc.run())
-    await until(lambda: link._transport is not None)
+    await until(lambda: link.is_open)
     host, port = link.local_address
     ap = FakeAutopilot(UdpOutLink(host, port))
     await ap.start()

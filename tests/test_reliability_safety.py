@@ -60,7 +60,7 @@ async def over_udp(
         notifier=SystemdNotifier({}),
     )
     task = asyncio.create_task(svc.run())
-    await until(lambda: link._transport is not None)
+    await until(lambda: link.is_open)
     host, port = link.local_address
     ap = FakeAutopilot(UdpOutLink(host, port), **ap_kwargs)
     await ap.start()

@@ -186,7 +186,7 @@ async def test_binds_only_where_configured() -> None:
     )
     task = asyncio.create_task(svc.run())
     try:
-        while svc.link._transport is None:  # type: ignore[attr-defined]
+        while not svc.link.is_open:  # type: ignore[attr-defined]
             await asyncio.sleep(0.01)
         await asyncio.sleep(0.2)
         mine = _bound(_socket_inodes() - before)

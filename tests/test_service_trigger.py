@@ -57,3 +57,31 @@ async def test_inputs_slower_than_the_loop_leave_the_timer_as_deadline() -> None
     cycles, by_input, by_timer, wall = await _run(5.0, 2.0)
     assert cycles <= 20.0 * wall + 2
     assert by_timer > by_input and cycles >= by_timer
+
+
+async def test_a_sensor_gone_quiet_is_not_waited_for() -> None:
+    """The burst a cycle waits for is that of the sensors that reported in the last two:
+    once a sensor has gone quiet the others' bursts start the cycles again, not the
+    deadline."""
+    a, b = memory_pair()
+    svc = Service(make_config(), a, planner_factory=PlannerBox(), notifier=SystemdNotifier({}))
+    ap = FakeAutopilot(b, rate_hz=40.0)
+    task = asyncio.create_task(svc.run())
+    await ap.start()
+    try:
+        deadline = time.monotonic() + 20.0
+        while not svc.status().configured:
+            assert time.monotonic() < deadline, "the service did not configure the autopilot"
+            await asyncio.sleep(0.01)
+        ap.sensors_enabled = {0, 1}
+        await asyncio.sleep(1.0)  # sensor 2 goes stale (0.5 s)
+        c0 = dict(svc.counters)
+        await asyncio.sleep(2.0)
+        c1 = dict(svc.counters)
+    finally:
+        svc.stop()
+        assert await asyncio.wait_for(task, 10) == 0
+        await ap.stop()
+    by_input = c1.get("cycles_by_input", 0) - c0.get("cycles_by_input", 0)
+    by_timer = c1.get("cycles_by_timer", 0) - c0.get("cycles_by_timer", 0)
+    assert by_input > by_timer

@@ -51,7 +51,7 @@ async def over_udp(
     box = PlannerBox()
     svc = Service(cfg or make_config(), link, planner_factory=box, notifier=SystemdNotifier({}))
     task = asyncio.create_task(svc.run())
-    await until(lambda: link._transport is not None)
+    await until(lambda: link.is_open)
     host, port = link.local_address
     ap = FakeAutopilot(UdpOutLink(host, port), **ap_kwargs)
     await ap.start()

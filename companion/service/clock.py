@@ -25,10 +25,6 @@ def unix_time_s() -> float:
     return time.time()
 
 
-SIM_POLL_S = 0.001
-"""Wall seconds between looks at a clock set from outside, while sleeping on it."""
-
-
 class Clock(Protocol):
     """Seconds on a clock that never goes backwards; its origin is arbitrary."""
 
@@ -50,11 +46,14 @@ class MonotonicClock:
 class SimClock:
     """Time set from outside (seconds, the simulator's lockstep ticks); never goes backwards.
 
-    `sleep` looks at the time every SIM_POLL_S of wall time until its end has been reached.
+    `sleep` returns at the first `set` that reaches its end: in lockstep, on a tick, while
+    the simulator waits for the tick's answer (so what the sleeper does next lands in that
+    tick, whatever the machine's load).
     """
 
     def __init__(self, start_s: float = 0.0) -> None:
         self._t = start_s
+        self._moved: asyncio.Event | None = None
 
     def now(self) -> float:
         return self._t
@@ -62,32 +61,8 @@ class SimClock:
     def set(self, t_s: float) -> None:
         if t_s > self._t:
             self._t = t_s
-
-    async def sleep(self, duration_s: float) -> None:
-        end = self._t + duration_s
-        while self._t < end:
-            await asyncio.sleep(SIM_POLL_S)
-
-
-class ManualClock(SimClock):
-    """A clock a test moves by hand: `advance(dt_s)` or `set(t_s)`; sleepers wake when their
-    end has been reached (after the test yields to the event loop), never on the wall clock."""
-
-    def __init__(self, start_s: float = 0.0) -> None:
-        super().__init__(start_s)
-        self._moved: asyncio.Event | None = None
-
-    def set(self, t_s: float) -> None:
-        super().set(t_s)
-        if self._moved is not None:
-            self._moved.set()
-
-    def advance(self, dt_s: float) -> float:
-        """Move time forward by dt_s >= 0; returns the new time."""
-        if dt_s < 0:
-            raise ValueError(f"a clock cannot go back: dt_s = {dt_s}")
-        self.set(self._t + dt_s)
-        return self._t
+            if self._moved is not None:
+                self._moved.set()
 
     async def sleep(self, duration_s: float) -> None:
         if self._moved is None:
@@ -98,6 +73,18 @@ class ManualClock(SimClock):
         while self._t < end:
             self._moved.clear()
             await self._moved.wait()
+
+
+class ManualClock(SimClock):
+    """A clock a test moves by hand: `advance(dt_s)` or `set(t_s)`; sleepers wake when their
+    end has been reached (after the test yields to the event loop), never on the wall clock."""
+
+    def advance(self, dt_s: float) -> float:
+        """Move time forward by dt_s >= 0; returns the new time."""
+        if dt_s < 0:
+            raise ValueError(f"a clock cannot go back: dt_s = {dt_s}")
+        self.set(self._t + dt_s)
+        return self._t
 
 
 __all__ = ["Clock", "ManualClock", "MonotonicClock", "SimClock", "unix_time_s"]

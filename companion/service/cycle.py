@@ -291,7 +291,8 @@ class ControlCycle:
         sp_kind: str | None,
         events: list[str],
     ) -> dict[str, Any]:
-        state = self.host.vehicle_state()
+        # the state the planner stepped with (its ranges' attitude), else the latest
+        state = self.host.step_state if result is not None else self.host.vehicle_state()
         d = result.diagnostics if result is not None else None
         return {
             "type": "cycle",

@@ -42,6 +42,7 @@ from companion.planner.types import FloatArray, PathMode, Setpoint, StepResult, 
 from companion.service.clock import Clock
 from companion.service.flightlog import FlightLogWriter
 from companion.service.mission import latlon_to_xy
+from companion.service.pairing import AttitudeSample
 from companion.service.statustext import Severity
 from companion.service.telemetry import Telemetry
 from companion.tuning import PlannerConfig
@@ -151,6 +152,8 @@ class PlannerHost:
         self.next_point = 0
         self._seg_start: FloatArray | None = None
         self.last_result: StepResult | None = None
+        self.step_state: VehicleState | None = None
+        """The state (service frame) the last `step` used: the attitude of its ranges."""
         self.last_setpoint: Setpoint | None = None
         """The last setpoint sent (planner or hold), service frame."""
         self.route_finished = asyncio.Event()
@@ -251,13 +254,16 @@ class PlannerHost:
         self.mission_geo = geo
         self.update_frame()
 
-    def vehicle_state(self) -> VehicleState | None:
-        """The vehicle's state in the service's frame (ENU m, ENU Euler rad), or None."""
+    def vehicle_state(self, attitude: AttitudeSample | None = None) -> VehicleState | None:
+        """The vehicle's state in the service's frame (ENU m, ENU Euler rad), or None.
+        attitude: the attitude to use (NED, e.g. that of the ranges' time); default the
+        latest."""
         pos, att = self.tel.position, self.tel.attitude
         if pos is None or att is None or self.frame is None:
             return None
         e, n, u = self.frame.to_enu(GeoPoint(pos.lat_deg, pos.lon_deg, pos.alt_amsl_m))
-        r, p, y = attitude_ned_to_enu(att.roll_rad, att.pitch_rad, att.yaw_rad)
+        a = att if attitude is None else attitude
+        r, p, y = attitude_ned_to_enu(a.roll_rad, a.pitch_rad, a.yaw_rad)
         return VehicleState(np.array([e, n, u]), r, p, y)
 
     def pause(self) -> None:
@@ -411,7 +417,11 @@ class PlannerHost:
     def step(self, now: float) -> StepResult | None:
         """One planner step at service time `now`; None when the caller must hold (no
         state, route complete, being built, not flyable, or the planner failed)."""
-        estimate = self.vehicle_state()
+        # the ranges with the attitude of their own time (`pairing.py`): the planner turns
+        # them into points with the state's attitude
+        pairing = self.tel.paired_ranges(now, self.sensor_max_age_s)
+        estimate = self.vehicle_state(pairing.attitude)
+        self.step_state = estimate
         if estimate is None:
             return None
         state = self._to_planner(estimate)
@@ -433,9 +443,8 @@ class PlannerHost:
         dt = self.period_s if self._planner_t is None else now - self._planner_t
         dt = min(max(dt, 0.0), 3.0 * self.period_s)
         self._planner_t = now
-        ranges = self.tel.range_vector(now, self.sensor_max_age_s)
         try:
-            result = self.planner.step(state, ranges, dt)
+            result = self.planner.step(state, pairing.ranges_m, dt)
             if not finite_setpoint(result.setpoint):
                 raise FloatingPointError(f"non-finite setpoint {result.setpoint}")
             self.planner_failed = False

@@ -25,6 +25,7 @@ import contextlib
 import dataclasses
 import logging
 import os
+import socket
 import termios
 import tty
 from collections.abc import Callable
@@ -120,22 +121,9 @@ def open_link(spec: LinkSpec | str) -> Link:
 # --- UDP -----------------------------------------------------------------------------------
 
 
-class _UdpProtocol(asyncio.DatagramProtocol):
-    def __init__(self, link: _UdpLink) -> None:
-        self.link = link
-
-    def datagram_received(self, data: bytes, addr: tuple[str, int]) -> None:
-        self.link._on_datagram(data, (addr[0], addr[1]))
-
-    def error_received(self, exc: Exception) -> None:
-        self.link.stats.errors += 1
-        log.debug("%s: %s", self.link.name, exc)
-
-
-def _buffered(transport: asyncio.BaseTransport) -> int:
-    """Bytes waiting in a transport's write buffer (0 if it cannot tell)."""
-    size = getattr(transport, "get_write_buffer_size", None)
-    return int(size()) if size is not None else 0
+MAX_DATAGRAMS_PER_WAKE = 64
+"""Datagrams read per readiness event at most (then other tasks run, and the loop comes
+back): a burst of telemetry costs one event-loop wake-up, not one per datagram."""
 
 
 def udp_kernel_drops(fd: int) -> int | None:
@@ -157,11 +145,56 @@ def udp_kernel_drops(fd: int) -> int | None:
 
 
 class _UdpLink(Link):
+    """A non-blocking UDP socket watched with the loop's `add_reader`: on each readiness
+    event every datagram already queued is read (up to MAX_DATAGRAMS_PER_WAKE), so a burst
+    of telemetry is one wake-up of the event loop. Sends go straight to the socket; one the
+    kernel cannot take at once (buffer full) is dropped and counted."""
+
     datagram = True
 
     def __init__(self, name: str) -> None:
         super().__init__(name)
-        self._transport: asyncio.DatagramTransport | None = None
+        self._sock: socket.socket | None = None
+        self._loop: asyncio.AbstractEventLoop | None = None
+
+    async def _open_socket(
+        self, receiver: Receiver, host: str, port: int, *, connect: bool
+    ) -> None:
+        """Resolve host:port, bind (listen) or connect (send to it), start reading."""
+        loop = asyncio.get_running_loop()
+        infos = await loop.getaddrinfo(host, port, type=socket.SOCK_DGRAM)
+        if not infos:
+            raise OSError(f"cannot resolve {host}")
+        family, kind, proto, _, addr = infos[0]
+        sock = socket.socket(family, kind, proto)
+        try:
+            sock.setblocking(False)
+            if connect:
+                sock.connect(addr)
+            else:
+                sock.bind(addr)
+        except OSError:
+            sock.close()
+            raise
+        self._receiver, self._sock, self._loop = receiver, sock, loop
+        loop.add_reader(sock.fileno(), self._readable)
+
+    def _readable(self) -> None:
+        sock = self._sock
+        if sock is None:
+            return
+        for _ in range(MAX_DATAGRAMS_PER_WAKE):
+            try:
+                data, addr = sock.recvfrom(MAX_DATAGRAM_BYTES + 1)
+            except (BlockingIOError, InterruptedError):
+                return
+            except OSError as exc:  # ICMP port unreachable from a connected peer, ...
+                self.stats.errors += 1
+                log.debug("%s: %s", self.name, exc)
+                continue
+            self._on_datagram(data, (addr[0], addr[1]))
+            if self._sock is None:  # closed by what the datagram caused
+                return
 
     def _on_datagram(self, data: bytes, peer: tuple[str, int]) -> None:
         if len(data) > MAX_DATAGRAM_BYTES:
@@ -170,12 +203,18 @@ class _UdpLink(Link):
         self._deliver(data, peer)
 
     def _sendto(self, data: bytes, addr: tuple[str, int] | None) -> None:
-        t = self._transport
-        if t is None or t.is_closing() or _buffered(t) > MAX_WRITE_BUFFER_BYTES:
+        sock = self._sock
+        if sock is None:
             self.stats.send_dropped += 1
             return
         try:
-            t.sendto(data, addr)
+            if addr is None:
+                sock.send(data)
+            else:
+                sock.sendto(data, addr)
+        except (BlockingIOError, InterruptedError):  # the kernel's buffer is full
+            self.stats.send_dropped += 1
+            return
         except OSError as exc:  # e.g. network unreachable: count, never stop the loop
             self.stats.errors += 1
             log.debug("%s: send failed: %s", self.name, exc)
@@ -184,25 +223,30 @@ class _UdpLink(Link):
         self.stats.bytes_out += len(data)
 
     def refresh_stats(self) -> LinkStats:
-        t = self._transport
-        sock = t.get_extra_info("socket") if t is not None else None
-        if sock is not None:
-            drops = udp_kernel_drops(sock.fileno())
+        if self._sock is not None:
+            drops = udp_kernel_drops(self._sock.fileno())
             if drops is not None:
                 self.stats.kernel_dropped = drops
         return self.stats
 
     @property
+    def is_open(self) -> bool:
+        """True between `open` and `close`."""
+        return self._sock is not None
+
+    @property
     def local_address(self) -> tuple[str, int]:
         """The bound (host, port); useful with port 0."""
-        assert self._transport is not None, "link not open"
-        host, port = self._transport.get_extra_info("sockname")[:2]
+        assert self._sock is not None, "link not open"
+        host, port = self._sock.getsockname()[:2]
         return str(host), int(port)
 
     async def close(self) -> None:
-        if self._transport is not None:
-            self._transport.close()
-            self._transport = None
+        sock, self._sock = self._sock, None
+        if sock is not None:
+            if self._loop is not None and not self._loop.is_closed():
+                self._loop.remove_reader(sock.fileno())
+            sock.close()
 
 
 class UdpInLink(_UdpLink):
@@ -215,11 +259,7 @@ class UdpInLink(_UdpLink):
         self._pinned: Peer = None
 
     async def open(self, receiver: Receiver) -> None:
-        self._receiver = receiver
-        loop = asyncio.get_running_loop()
-        self._transport, _ = await loop.create_datagram_endpoint(
-            lambda: _UdpProtocol(self), local_addr=(self.host, self.port)
-        )
+        await self._open_socket(receiver, self.host, self.port, connect=False)
 
     def _on_datagram(self, data: bytes, peer: tuple[str, int]) -> None:
         if self._pinned is None:
@@ -251,11 +291,7 @@ class UdpOutLink(_UdpLink):
         self.host, self.port = host, port
 
     async def open(self, receiver: Receiver) -> None:
-        self._receiver = receiver
-        loop = asyncio.get_running_loop()
-        self._transport, _ = await loop.create_datagram_endpoint(
-            lambda: _UdpProtocol(self), remote_addr=(self.host, self.port)
-        )
+        await self._open_socket(receiver, self.host, self.port, connect=True)
 
     def send(self, data: bytes) -> None:
         self._sendto(data, None)

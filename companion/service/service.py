@@ -109,13 +109,21 @@ class Service:
         self.wall: Clock = wall if wall is not None else MonotonicClock()
         self.sensors = config.sensor_table()
         self.period_s = 1.0 / config.control.rate_hz
-        self._trigger: asyncio.Future[None] | None = None
+        self._trigger: asyncio.Future[bool | None] | None = None
         """Set when the inputs the next cycle waits for have all arrived (real time only)."""
-        self._awaited: set[str | int] = set()
-        """Inputs the next cycle still waits for: "ATTITUDE", "GLOBAL_POSITION_INT" and
-        DISTANCE_SENSOR ids, each of those that streamed during the last cycle period."""
-        self._arrived: set[str | int] = set()
-        self._arrived_before: set[str | int] = set()
+        self._awaited: set[int] = set()
+        """The DISTANCE_SENSOR burst the next cycle waits for: the ids of the sensors that
+        reported in each of the last two (a sensor slower than the loop, or one whose datagram
+        was lost, is not waited for: a lossy link must not hold the loop to its deadline)."""
+        self._arrived: set[int] = set()
+        self._arrived_before: set[int] = set()
+        self._burst_ms = 0
+        """The newest stamp of the burst so far (autopilot ms; 0: not stamped)."""
+        self._attitude_covers = False
+        """An ATTITUDE at or after the burst's time has arrived (its attitude is known)."""
+        self._attitude_streams = False
+        """An ATTITUDE arrived during the last cycle period."""
+        self._attitude_seen = False
         self._trigger_t = 0.0
         """When the inputs of the awaited cycle were complete (service clock, s)."""
 
@@ -494,9 +502,14 @@ class Service:
             tc1 = max(1, int(clock.now() * 1e9))
             self.conn.send(mavlink2.MAVLink_timesync_message(tc1, ts1))
             return
-        clock.set(ts1 * 1e-9)
+        clock.set(ts1 * 1e-9)  # wakes what sleeps on the service clock (the supervisor)
         self._sim_tick(clock.now())
-        self.conn.send(mavlink2.MAVLink_timesync_message(max(1, ts1), ts1))
+        answer = mavlink2.MAVLink_timesync_message(max(1, ts1), ts1)
+        # Answer only after the tasks this tick woke have run up to their next wait, so what
+        # they send (commands) lands in this tick: the simulator waits for the answer, and
+        # the same scenario gives the same flight whatever the machine's load.
+        loop = asyncio.get_running_loop()
+        loop.call_soon(loop.call_soon, self.conn.send, answer)
 
     # === tasks =============================================================================
 
@@ -507,19 +520,44 @@ class Service:
             await asyncio.sleep(period)
 
     def _input_arrived(self, kind: str, msg: MAVLinkMessage) -> None:
-        """An accepted input: when it completes what the next cycle waits for (the last
-        DISTANCE_SENSOR of a burst, or the ATTITUDE/position after them), wake the loop."""
-        key: str | int = int(msg.id) if kind == "DISTANCE_SENSOR" else kind
-        self._arrived.add(key)
+        """An accepted input: when it completes what the next cycle waits for, wake the loop.
+        That is the end of the DISTANCE_SENSOR burst (every awaited sensor has reported since
+        the last cycle) with the attitude of its time known (an ATTITUDE stamped at or after
+        the burst; by arrival when unstamped), so the ranges pair with their own attitude
+        (`pairing.py`). When ATTITUDE does not stream, the burst alone."""
+        if kind == "DISTANCE_SENSOR":
+            stamp = int(msg.time_boot_ms)
+            self._arrived.add(int(msg.id))
+            self._burst_ms = max(self._burst_ms, stamp)
+            att = self.tel.attitude
+            self._attitude_covers = (
+                att is not None and stamp > 0 and att.time_boot_ms >= self._burst_ms
+            )
+        elif kind == "ATTITUDE":
+            stamp = int(msg.time_boot_ms)
+            self._attitude_seen = True
+            self._attitude_covers = stamp >= self._burst_ms or stamp == 0
+        else:
+            return
         trigger = self._trigger
-        if (
-            trigger is not None
-            and self._awaited
-            and not trigger.done()
-            and self._awaited <= self._arrived
-        ):
+        if trigger is not None and not trigger.done() and self._burst_complete():
             self._trigger_t = self.clock.now()
-            trigger.set_result(None)
+            trigger.set_result(True)
+
+    def _burst_complete(self) -> bool:
+        return (
+            bool(self._awaited)
+            and self._awaited <= self._arrived
+            and (self._attitude_covers or not self._attitude_streams)
+        )
+
+    def _next_burst(self) -> None:
+        """Inputs from now on count for the next cycle's burst."""
+        self._awaited = self._arrived & self._arrived_before
+        self._arrived_before, self._arrived = self._arrived, set()
+        self._burst_ms = 0
+        self._attitude_covers = False
+        self._attitude_streams, self._attitude_seen = self._attitude_seen, False
 
     async def _cycle_loop(self) -> None:
         """Real time: a cycle runs when the inputs it needs have arrived (see
@@ -545,12 +583,11 @@ class Service:
             # the rate bound: a cycle spends one period of credit, credit accrues with time
             credit = min(credit + (start - last), cap) - period
             last = start
-            # what streamed in each of the last two periods is what the next cycle waits
-            # for (a sensor slower than the loop is not waited for)
-            self._awaited = self._arrived & self._arrived_before
-            self._arrived_before, self._arrived = self._arrived, set()
             self._trigger = trigger = loop.create_future()
             self.cycle.safe_tick(start)
+            if self._burst_complete():  # it came while the rate bound held the loop back
+                self._trigger_t = clock.now()
+                trigger.set_result(True)
             elapsed = clock.now() - start
             if late + elapsed > period:
                 self.counters["cycle_overruns"] += 1
@@ -562,7 +599,8 @@ class Service:
             )
             await trigger
             handle.cancel()
-            by_input = bool(self._awaited) and self._awaited <= self._arrived
+            self._next_burst()
+            by_input = trigger.result() is not None
             self.counters["cycles_by_input" if by_input else "cycles_by_timer"] += 1
             woken = self._trigger_t if by_input else deadline
             due = max(min(woken, clock.now()), last + period - credit)
@@ -664,6 +702,6 @@ class Service:
 __all__ = ["EXIT_LINK", "Service", "ServiceCounters"]
 
 
-def _resolve(fut: asyncio.Future[None]) -> None:
+def _resolve(fut: asyncio.Future[bool | None]) -> None:
     if not fut.done():
         fut.set_result(None)

@@ -272,8 +272,8 @@ class Supervisor:
         while not pred():
             if self.clock.now() >= deadline:
                 return False
-            # short polls: in simulator time the world moves on while we wait
-            await asyncio.sleep(0.002 if self.sim_time else 0.02)
+            # short polls; in simulator time the next tick (the simulator waits for us)
+            await self.clock.sleep(0.002 if self.sim_time else 0.02)
         return True
 
     # --- auto start ------------------------------------------------------------------------
@@ -345,7 +345,7 @@ class Supervisor:
             if a.reason != said:
                 said = a.reason
                 self._say(f"auto start: waiting, {a.reason}", Severity.INFO)
-            await asyncio.sleep(0.05)
+            await self.clock.sleep(0.05)
 
     async def _wait_for_route(self) -> bool:
         """Until there is a base point to fly to (farther than MIN_BASE_POINT_SPACING_M from
@@ -363,7 +363,7 @@ class Supervisor:
                 self._say(f"auto start: no route ({what}): not taking off", Severity.WARNING)
             if self.cfg.route.source != "mission":
                 return False
-            await asyncio.sleep(MISSION_RETRY_S)
+            await self.clock.sleep(MISSION_RETRY_S)
             try:
                 await self._load_mission(quiet=True)
             except MissionError as exc:

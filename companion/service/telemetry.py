@@ -40,6 +40,7 @@ from companion.planner.sensors import (
 )
 from companion.planner.types import FloatArray
 from companion.service.codec import MAVLinkMessage
+from companion.service.pairing import AttitudeHistory, Pairing, pair_ranges
 
 log = logging.getLogger("companion.service.telemetry")
 
@@ -228,6 +229,14 @@ class Telemetry:
         the loop works in has moved, so plans and holds made before it are void."""
         self.counters: Counter[str] = Counter()
         self._expected_boresight = [s.boresight_frd for s in sensors.specs]
+        self._orientation_ok: dict[tuple[int, int], bool | None] = {}
+        """Per (table index, orientation): the orientation checked against the configured
+        one (None: unknown orientation). Per-message work done once per sensor."""
+        self._order_keys = [f"DISTANCE_SENSOR.{i}" for i in range(len(sensors))]
+        self._limits_seen: dict[tuple[int, int, int], str] = {}
+        self._detects: dict[tuple[int, float], bool] = {}
+        """The planner's detection rule (`SensorTable.valid`) per (index, reading): readings
+        are whole centimetres, so a few hundred values per sensor."""
         self._boresight_cache: dict[int, FloatArray | None] = {}
         self._quaternion_cache: dict[tuple[float, ...], FloatArray | None] = {}
         self.reboots = 0
@@ -240,6 +249,8 @@ class Telemetry:
         """Forget everything but the counters (autopilot reboot or a new autopilot)."""
         self.heartbeat: Heartbeat | None = None
         self.attitude: Attitude | None = None
+        self.attitudes = AttitudeHistory()
+        """The last second of attitudes by stamp, rate-gated (`pairing.py`)."""
         self.position: Position | None = None
         self.home: Home | None = None
         self.ranges: list[RangeReading | None] = [None] * len(self.sensors)
@@ -421,6 +432,8 @@ class Telemetry:
         if not self._in_order("ATTITUDE", int(msg.time_boot_ms), t_rx):
             return False
         self.attitude = Attitude(r, p, y, int(msg.time_boot_ms), t_rx)
+        if msg.time_boot_ms and not self.attitudes.add(int(msg.time_boot_ms), r, p, y):
+            self._count("attitude_rate_untrusted", logging.WARNING, f" (t {msg.time_boot_ms} ms)")
         return True
 
     def _global_position(self, msg: MAVLinkMessage, t_rx: float) -> bool:
@@ -534,23 +547,45 @@ class Telemetry:
         if index is None:
             return self._reject("sensor_unknown_id", f"id {int(msg.id)}")
         orientation = int(msg.orientation)
-        boresight = self._msg_boresight(orientation, list(getattr(msg, "quaternion", [])))
-        if boresight is None:
+        if orientation == MAV_SENSOR_ROTATION_CUSTOM:
+            boresight = self._msg_boresight(orientation, list(getattr(msg, "quaternion", [])))
+            ok = (
+                None
+                if boresight is None
+                else float(boresight @ self._expected_boresight[index]) >= ORIENTATION_TOLERANCE_COS
+            )
+        else:
+            okey = (index, orientation)
+            if okey not in self._orientation_ok:
+                boresight = self._msg_boresight(orientation, [])
+                self._orientation_ok[okey] = (
+                    None
+                    if boresight is None
+                    else float(boresight @ self._expected_boresight[index])
+                    >= ORIENTATION_TOLERANCE_COS
+                )
+            ok = self._orientation_ok[okey]
+        if ok is None:
             if orientation != MAV_SENSOR_ROTATION_CUSTOM:
                 return self._reject(
                     "sensor_orientation_unknown", f"id {int(msg.id)} orientation {orientation}"
                 )
             self._count("sensor_orientation_unverified")
-        elif float(boresight @ self._expected_boresight[index]) < ORIENTATION_TOLERANCE_COS:
+        elif not ok:
             return self._reject(
                 "sensor_orientation_mismatch", f"id {int(msg.id)} orientation {orientation}"
             )
-        if not self._in_order(f"DISTANCE_SENSOR.{index}", int(msg.time_boot_ms), t_rx):
+        if not self._in_order(self._order_keys[index], int(msg.time_boot_ms), t_rx):
             return False
         spec = self.sensors.specs[index]
         lo, hi = spec.min_range_m, spec.max_range_m
         mn, mx, cur = int(msg.min_distance), int(msg.max_distance), int(msg.current_distance)
-        problem = limits_problem(mn, mx, lo, hi)
+        lkey = (index, mn, mx)
+        problem = self._limits_seen.get(lkey)
+        if problem is None:
+            if len(self._limits_seen) > 1024:  # a sender varying them: stay bounded
+                self._limits_seen.clear()
+            problem = self._limits_seen[lkey] = limits_problem(mn, mx, lo, hi)
         if problem:
             # The sender's limits contradict the configured ones: one of the two is wrong,
             # and a reading cannot be trusted to mean what the planner will take it for.
@@ -566,10 +601,15 @@ class Telemetry:
         if 0.0 < d < lo:
             self._count("range_below_min", detail=f" (sensor {spec.sensor_id}: {cur} cm)")
             d = lo
-        probe = self._probe
-        probe[index] = d
-        detects = bool(self.sensors.valid(probe)[index])
-        probe[index] = math.nan
+        dkey = (index, d)
+        detects = self._detects.get(dkey)
+        if detects is None:
+            if len(self._detects) > 65536:
+                self._detects.clear()
+            probe = self._probe
+            probe[index] = d
+            detects = self._detects[dkey] = bool(self.sensors.valid(probe)[index])
+            probe[index] = math.nan
         if not detects:
             why = "range_none" if d <= 0.0 else "range_at_max"
             self._count(why, detail=f" (sensor {spec.sensor_id}: {cur} cm)")
@@ -592,10 +632,12 @@ class Telemetry:
         if len(history) < n:
             return reading
         ordered = sorted(history, key=lambda r: r.distance_m if r.distance_m > 0 else math.inf)
-        median = ordered[n // 2].distance_m
-        if median != reading.distance_m:
+        median = ordered[n // 2]
+        if median.distance_m != reading.distance_m:
             self._count("range_filtered")
-        return RangeReading(median, reading.time_boot_ms, reading.t_rx)
+        # the median keeps the stamp of the reading it is (its attitude is that time's); its
+        # receipt time is the newest reading's (the sensor is as fresh as its last report)
+        return RangeReading(median.distance_m, median.time_boot_ms, reading.t_rx)
 
     # -- queries ----------------------------------------------------------------------------
 
@@ -617,6 +659,23 @@ class Telemetry:
                 else math.nan
             )
         return r
+
+    def paired_ranges(self, now: float, max_age_s: float) -> Pairing:
+        """`range_vector` paired with the attitude of the ranges' time (`pairing.py`):
+        readings unusable with it are NaN this cycle; counted as input.range_unpaired and
+        input.cycle_attitude_untrusted."""
+        ranges = self.range_vector(now, max_age_s)
+        stamps = [0 if r is None else r.time_boot_ms for r in self.ranges]
+        att = self.attitude
+        latest = (
+            None if att is None or not att.time_boot_ms else self.attitudes.at(att.time_boot_ms)
+        )
+        pairing = pair_ranges(self.attitudes, ranges, stamps, latest)
+        if pairing.untrusted:
+            self._count("cycle_attitude_untrusted", logging.WARNING)
+        elif pairing.unpaired:
+            self.counters["range_unpaired"] += pairing.unpaired
+        return pairing
 
     def stale_sensors(self, now: float, max_age_s: float) -> list[int]:
         """Indices (table order) of sensors with no reading within max_age_s."""
