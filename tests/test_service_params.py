@@ -120,7 +120,7 @@ async def station() -> AsyncIterator[tuple[Service, Station]]:
     svc = Service(cfg, link, planner_factory=default_planner_factory, notifier=SystemdNotifier({}))
     task = asyncio.create_task(svc.run())
     for _ in range(500):
-        if link._transport is not None:
+        if link.is_open:
             break
         await asyncio.sleep(0.01)
     gcs = Station(link.local_address[1])
