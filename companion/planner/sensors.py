@@ -17,7 +17,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from companion.planner.frames import euler_frd_matrix, frd_to_flu, quaternion_to_matrix
+from companion.planner.frames import frd_to_flu, quaternion_to_matrix
+from companion.planner.rotations import euler_zyx
 from companion.planner.types import BoolArray, FloatArray
 
 MAV_SENSOR_ROTATION_CUSTOM = 100
@@ -102,7 +103,7 @@ SURFACE_FOR_GROUP = {
 
 def boresight_from_rpy_frd(roll_rad: float, pitch_rad: float, yaw_rad: float) -> FloatArray:
     """Boresight unit vector in body FRD for a MAVLink-style rotation of "forward"."""
-    return euler_frd_matrix(roll_rad, pitch_rad, yaw_rad)[:, 0].copy()
+    return euler_zyx(roll_rad, pitch_rad, yaw_rad)[:, 0].copy()
 
 
 def boresight_from_mav_orientation(orientation: int) -> FloatArray:
