@@ -233,7 +233,9 @@ class Planner:
         self._failed_cycle = 0
         self._search_units = 0
         self._search: tuple[tuple[object, ...], Generator[bool, None, _Resolved]] | None = None
-        self._v_layout = params.v_d_mps
+        self._flag_m = 0.0  # how far ahead the layout flags a wall (`sight`), metres
+        self._v_cruise = params.v_d_mps  # v_d, or the layout's limit without the lead
+        self._v_layout = params.v_d_mps  # that limit with this cycle's lead
         self._ahead_m = 0.0  # the vehicle ahead of X_d along the path, metres
 
     def __deepcopy__(self, memo: dict[int, object]) -> Planner:
@@ -776,22 +778,26 @@ class Planner:
         return left, right
 
     def _update_layout_limit(self, dt_s: float, events: list[str]) -> None:
-        """The speed from which a wall first flagged as steep can still be stopped for
-        (`sight`); recomputed when H_d or the period changes, announced when it binds."""
-        key = (self._h_d, dt_s)
-        if key == self._sight_key:
-            return
-        self._sight_key = key
+        """The speed from which a wall first flagged as steep can still be stopped for,
+        reaction allowance included (`sight`): the flag distance is recomputed when H_d or
+        the period changes (and the limit announced when it binds), the limit itself every
+        cycle with the vehicle's measured lead on X_d."""
         params = self.params
-        flag = wall_flag_distance_m(self.sensors, self._h_d, params.phi_max_rad)
         trigger = params.d_min_m + 0.5 * params.clearance_margin_m
-        v_max = layout_speed_limit_mps(flag, trigger, params.accel_max_mps2, dt_s)
-        self._v_layout = min(params.v_d_mps, v_max)
-        if self._v_layout < params.v_d_mps:
-            events.append(
-                f"sensor layout flags a wall as steep only {flag:.1f} m ahead: "
-                f"speed limited to {self._v_layout:.2f} m/s (v_d {params.v_d_mps:g})"
-            )
+        a, t = params.accel_max_mps2, params.reaction_time_s
+        key = (self._h_d, dt_s)
+        if key != self._sight_key:
+            self._sight_key = key
+            self._flag_m = wall_flag_distance_m(self.sensors, self._h_d, params.phi_max_rad)
+            v_max = layout_speed_limit_mps(self._flag_m, trigger, a, dt_s, t)
+            self._v_cruise = min(params.v_d_mps, v_max)
+            if self._v_cruise < params.v_d_mps:
+                events.append(
+                    f"sensor layout flags a wall as steep only {self._flag_m:.1f} m ahead: "
+                    f"speed limited to {self._v_cruise:.2f} m/s (v_d {params.v_d_mps:g})"
+                )
+        v_now = layout_speed_limit_mps(self._flag_m, trigger, a, dt_s, t, self._ahead_m)
+        self._v_layout = min(params.v_d_mps, v_now)
 
     def _speed_target(self) -> float:
         """Reference speed allowed here (`speed`): v_d (or the layout's limit), lowered
@@ -822,6 +828,7 @@ class Planner:
                     stop_at_band=self._blocked or self._search is not None,
                     reaction_s=params.reaction_time_s,
                     allowance_m=self._ahead_m,
+                    rest_margin_m=speed.rest_margin_m(self._v_cruise, params.reaction_time_s),
                 ),
             )
         return max(v, 0.0)
