@@ -141,3 +141,24 @@ def test_the_planner_stops_earlier_for_the_reaction_and_the_vehicle_ahead(
     assert 12.0 - stops[(0.0, 0.0)] > D_MIN
     # ... and with the vehicle measured 0.3 m ahead X_d holds back by as much again
     assert stops[(0.4, 0.3)] == pytest.approx(stops[(0.4, 0.0)] - 0.3, abs=0.02)
+
+
+def test_blocked_is_said_once_per_stop(monkeypatch: pytest.MonkeyPatch) -> None:
+    """A conflict that vanishes for a cycle at rest (a point carved, then seen again) does
+    not repeat the "blocked" event."""
+    monkeypatch.setattr(Planner, "_carve", lambda self, *args: None)
+    planner = _blocked_planner(0.4)
+    said = []
+    state = VehicleState(np.array([0.0, 0.0, 2.0]), 0.0, 0.0, 0.0)
+    for k in range(600):
+        if k in (500, 540):  # the memory empties for one cycle, then has the ring again
+            ring = planner._memory
+            planner._memory = type(ring)(1.0, 40.0, 4096)
+        res = planner.step(state, flat_ranges(2.0), 0.05)
+        if k in (500, 540):
+            assert res.diagnostics.decision is not Decision.BLOCKED
+            planner._memory = ring
+        said += [e for e in res.diagnostics.events if e.startswith("blocked")]
+        state = VehicleState(np.array(res.setpoint.position_enu), 0.0, 0.0, 0.0)
+    assert planner._blocked
+    assert len(said) == 1

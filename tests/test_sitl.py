@@ -181,7 +181,9 @@ def test_sensors_wired_to_the_autopilot_reach_the_planner(runs: dict[str, Any]) 
 
 @pytest.mark.xfail(strict=False, reason=WIRED_STOP)
 def test_flight_with_sensors_wired_to_the_autopilot(runs: dict[str, Any]) -> None:
-    assert_flight(_get(runs, "wired-wall"))
+    flight: SitlFlight = _get(runs, "wired-wall")
+    print(f"wired-wall: {_figures(flight)}")  # pytest -rP shows it
+    assert_flight(flight)
 
 
 def test_default_ekf_boot_then_fly(runs: dict[str, Any]) -> None:

@@ -81,6 +81,12 @@ _CARVE_TOLERANCE_M = 0.25
 """How close to a ray a remembered point must lie to be cleared by it, metres (one cell)."""
 _CARVE_SUPPORT_M = 0.5
 """A point with a neighbour this close that stays is on a surface: not carved, metres."""
+_ESCAPE_TOLERANCE_M = 0.05
+"""A sample of an escape (a correction accepted inside the re-plan band) conflicts again only
+if it has come this much closer to the memory than when the correction was accepted, m."""
+_BLOCKED_AGAIN_M = 0.5
+"""Left without a new path, the blocked state is said again only once X_d has moved this
+far from where it was left, metres."""
 _YAW_RATE_AT_REST_RAD_S = 0.8
 _YAW_ALIGNED_RAD = 0.1
 _GROUND_HOLD_RANGE = 4.0
@@ -237,6 +243,11 @@ class Planner:
         self._v_cruise = params.v_d_mps  # v_d, or the layout's limit without the lead
         self._v_layout = params.v_d_mps  # that limit with this cycle's lead
         self._ahead_m = 0.0  # the vehicle ahead of X_d along the path, metres
+        # An accepted correction's stretch inside the re-plan band: arc lengths on the path
+        # and the clearances it was accepted with (`_escape_exempt`); None if it has none.
+        self._escape: tuple[FloatArray, FloatArray] | None = None
+        # X_d where the blocked state was left without a new path (`_set_blocked`).
+        self._unblocked_xy: FloatArray | None = None
 
     def __deepcopy__(self, memo: dict[int, object]) -> Planner:
         """A copy of the planner; a re-plan search still going on (a generator, which cannot
@@ -270,6 +281,7 @@ class Planner:
         self._set_path(route, PathMode.ROUTE, Side.NONE)
         self._detour_end_s = 0.0
         self._blocked = False
+        self._unblocked_xy = None
 
     @property
     def path(self) -> Path:
@@ -329,7 +341,10 @@ class Planner:
 
         # Horizontal correction when the path ahead conflicts with remembered points.
         self._look = None  # the memory has changed: measure the look-ahead afresh
+        was_blocked = self._blocked
         replanned = self._update_path(state, ranges, valid, events)
+        if was_blocked and not self._blocked and not replanned:
+            self._unblocked_xy = self._xd_prev[:2].copy()
         if self._blocked:
             decision = Decision.BLOCKED
 
@@ -531,6 +546,7 @@ class Planner:
         self._stops = []
         self._after_retreat = None
         self._search = None
+        self._escape = None
 
     def _record_track(self, x: float, y: float) -> None:
         """Append X_d to the covered track every _TRACK_SPACING_M; going back over the
@@ -597,6 +613,8 @@ class Planner:
         # than the trigger distance is within `radius` of here: no need to filter first.
         trigger = params.d_min_m + 0.5 * params.clearance_margin_m
         conflict_samples = look.clearance < trigger
+        if self._escape is not None and not self._blocked and conflict_samples.any():
+            conflict_samples &= ~self._escape_exempt(look.s, look.clearance)
         if not conflict_samples.any():
             self._blocked = False
             self._search = None
@@ -657,9 +675,7 @@ class Planner:
         if resolved is None:
             # Moving, X_d changes every cycle and the search would start afresh: one that
             # does not fit in a cycle counts as failed (blocked: stop, then search at rest).
-            if not self._blocked:
-                events.append("blocked: no path keeps D_min, stopping")
-            self._blocked = True
+            self._set_blocked(events)
             self._failed_attempt, self._failed_cycle = attempt, self._cycle
             return False
         if resolved.detour is not None:
@@ -701,12 +717,21 @@ class Planner:
                 resolved: _Resolved = done.value
                 return resolved
             if blocked_mark:
-                if not self._blocked:
-                    events.append("blocked: no path keeps D_min, stopping")
-                self._blocked = True
+                self._set_blocked(events)
             else:
                 self._search_units += 1
         return None
+
+    def _set_blocked(self, events: list[str]) -> None:
+        """Enter the blocked state; say so once per stop. A conflict that vanishes for a
+        cycle (a point carved at rest, then seen again) must not repeat the event: after the
+        blocked state was left without a new path, it is said again only once X_d has moved
+        _BLOCKED_AGAIN_M from where it was left."""
+        if not self._blocked:
+            left = self._unblocked_xy
+            if left is None or math.hypot(*(self._xd_prev[:2] - left)) >= _BLOCKED_AGAIN_M:
+                events.append("blocked: no path keeps D_min, stopping")
+        self._blocked = True
 
     def _accept(self, detour: Detour, events: list[str], stop_first: bool) -> None:
         if detour.side is not self._side or self._mode is PathMode.ROUTE:
@@ -714,10 +739,39 @@ class Planner:
         if self._blocked:
             events.append("resumed")
         self._blocked = False
+        self._unblocked_xy = None
         self._set_path(detour.path, detour.mode, detour.side)
         if stop_first:
             self._stops = [0.0]
         self._detour_end_s = detour.path.length - (self.route.length - detour.rejoin_s)
+        self._escape = self._escape_stretch()
+
+    def _escape_stretch(self) -> tuple[FloatArray, FloatArray] | None:
+        """The new path's first stretch inside the re-plan band, with the clearances it was
+        accepted with (arc lengths, clearances); None when it starts outside the band.
+
+        A correction that starts inside the band leads out of it (`avoidance.ESCAPE_SLOPE`);
+        the speed schedule flies it (places no closer than here are free). The conflict check
+        must agree, or it finds the same stretch in conflict every cycle and re-plans each
+        time (the vehicle crawls out, re-planning 20 times a second)."""
+        look = self._look_ahead()
+        trigger = self.params.d_min_m + 0.5 * self.params.clearance_margin_m
+        if look.clearance is None or len(look.s) == 0 or look.clearance[0] >= trigger:
+            return None
+        out = np.flatnonzero(look.clearance >= trigger)
+        end = int(out[0]) if len(out) else len(look.s)
+        return look.s[:end].copy(), look.clearance[:end].copy()
+
+    def _escape_exempt(self, look_s: FloatArray, clearance: FloatArray) -> BoolArray:
+        """Look-ahead samples on the accepted escape stretch that are no closer to the memory
+        than when it was accepted (less _ESCAPE_TOLERANCE_M): not a conflict. A point seen
+        since, that comes closer, makes the sample a conflict again."""
+        assert self._escape is not None
+        esc_s, esc_clear = self._escape
+        on = look_s <= esc_s[-1]
+        planned = np.interp(look_s, esc_s, esc_clear)
+        exempt: BoolArray = on & (clearance >= planned - _ESCAPE_TOLERANCE_M)
+        return exempt
 
     def _start_retreat(self, plan: RetreatPlan, events: list[str]) -> None:
         """Back out along the covered track, stop, turn, and take the correction found."""
@@ -732,6 +786,7 @@ class Planner:
         self._after_retreat = (detour.mode, detour.side, rejoin_on_path)
         events.append(f"dead end: backing out {plan.back_m:.0f} m, then {detour.side.value}")
         self._blocked = False
+        self._unblocked_xy = None
 
     def _carve(
         self, state: VehicleState, rot: FloatArray, ranges: FloatArray, valid: BoolArray
