@@ -48,7 +48,13 @@ from companion.planner.path import Path
 from companion.planner.retreat import RetreatPlan, backwards_track, retreat_search
 from companion.planner.rotations import r_g
 from companion.planner.route import Route
-from companion.planner.sensors import SURFACE_FOR_GROUP, Group, SensorTable, range_points_world
+from companion.planner.sensors import (
+    SURFACE_FOR_GROUP,
+    Group,
+    SensorTable,
+    range_points_world,
+    sector_fan_flu,
+)
 from companion.planner.sight import layout_speed_limit_mps, wall_flag_distance_m
 from companion.planner.terrain import advance_exact, advance_paper, aim_point, desired_pitch
 from companion.planner.types import (
@@ -87,6 +93,8 @@ if it has come this much closer to the memory than when the correction was accep
 _BLOCKED_AGAIN_M = 0.5
 """Left without a new path, the blocked state is said again only once X_d has moved this
 far from where it was left, metres."""
+_SECTOR_ARC_SPACING_M = 0.5
+"""Spacing of the points a sector reading's arc enters the memory with, metres."""
 _YAW_RATE_AT_REST_RAD_S = 0.8
 _YAW_ALIGNED_RAD = 0.1
 _GROUND_HOLD_RANGE = 4.0
@@ -243,6 +251,10 @@ class Planner:
         self._v_cruise = params.v_d_mps  # v_d, or the layout's limit without the lead
         self._v_layout = params.v_d_mps  # that limit with this cycle's lead
         self._ahead_m = 0.0  # the vehicle ahead of X_d along the path, metres
+        # Obstacle sensors that read a sector (`SensorSpec.fov_rad`), and the rows of this
+        # cycle's steep points (`_steep_points`), for `_sector_arcs`.
+        self._sector_rows = np.flatnonzero(sensors.fov_rad > 0.0)
+        self._steep_rows = np.zeros(0, dtype=np.intp)
         # An accepted correction's stretch inside the re-plan band: arc lengths on the path
         # and the clearances it was accepted with (`_escape_exempt`); None if it has none.
         self._escape: tuple[FloatArray, FloatArray] | None = None
@@ -332,6 +344,10 @@ class Planner:
         ground = self._ground_points(points, surface, state)
         phi_star = steepness(points[obs], ground, detected)
         steep_xyz, steep_inflation = self._steep_points(points, valid, ground, phi_star)
+        if self._sector_rows.size and len(steep_xyz):
+            steep_xyz, steep_inflation = self._sector_arcs(
+                state.position_enu, rot, ranges, valid, steep_xyz, steep_inflation
+            )
         decision = decide(phi_star, self._thresholds)
         self._carve(state, rot, ranges, valid)
         if len(steep_xyz):
@@ -528,7 +544,36 @@ class Planner:
         rise = np.maximum(xyz[:, 2] - z_g - self._h_d, 0.0)
         foot_term = np.where(local, np.minimum(h, rise / np.tan(theta)), 0.0)
         inflation = slope_term + foot_term
+        self._steep_rows = np.flatnonzero(steep)
         return xyz, inflation
+
+    def _sector_arcs(
+        self,
+        position_enu: FloatArray,
+        rot: FloatArray,
+        ranges: FloatArray,
+        valid: BoolArray,
+        xyz: FloatArray,
+        inflation: FloatArray,
+    ) -> tuple[FloatArray, FloatArray]:
+        """A steep reading of a sensor with a field of view (a proximity sector) says that
+        the nearest object in the sector is at that range, not where on the arc: the whole
+        arc across the sector, points _SECTOR_ARC_SPACING_M apart, enters the memory with
+        the boresight point's inflation. (k, 3) points and (k,) inflations, the arcs added."""
+        rows = self._steep_rows
+        fov = self.sensors.fov_rad[rows]
+        sector = fov > 0.0
+        if not sector.any():
+            return xyz, inflation
+        extra_xyz, extra_inflation = [xyz], [inflation]
+        for k in np.flatnonzero(sector):
+            i = int(rows[k])
+            r = float(ranges[i])
+            n = max(2, math.ceil(float(fov[k]) * r / _SECTOR_ARC_SPACING_M) + 1)
+            fan = sector_fan_flu(self.sensors.boresights_flu[i], float(fov[k]), n)
+            extra_xyz.append(position_enu + r * (fan @ rot.T))
+            extra_inflation.append(np.full(n, inflation[k]))
+        return np.vstack(extra_xyz), np.concatenate(extra_inflation)
 
     def _path_heading(self) -> float:
         return self._path.segments[self._segment].heading(self._t)
@@ -808,10 +853,27 @@ class Planner:
         use = (valid | nothing) & (free > 0.0)
         if not use.any() or len(self._memory) == 0:
             return
-        dirs = sensors.boresights_flu[use] @ rot.T
-        self._memory.carve(
-            state.position_enu, dirs, free[use], _CARVE_TOLERANCE_M, _CARVE_SUPPORT_M
-        )
+        sector = sensors.fov_rad > 0.0
+        beam = use & ~sector
+        if beam.any():
+            dirs = sensors.boresights_flu[beam] @ rot.T
+            self._memory.carve(
+                state.position_enu, dirs, free[beam], _CARVE_TOLERANCE_M, _CARVE_SUPPORT_M
+            )
+        cone = use & sector
+        if cone.any() and len(self._memory):
+            # A sector reading is the nearest object anywhere across the sector: nothing
+            # is nearer in all of it, so its whole width carves (a reading's arc, entered
+            # from farther away, is over-wide once seen from nearer).
+            self._memory.carve_sectors(
+                state.position_enu,
+                rot[:, 2],
+                sensors.boresights_flu[cone] @ rot.T,
+                0.5 * sensors.fov_rad[cone],
+                free[cone],
+                _CARVE_TOLERANCE_M,
+                _CARVE_SUPPORT_M,
+            )
 
     def _vehicle_ahead_m(self, position_enu: FloatArray) -> float:
         """How far the vehicle is ahead of last cycle's X_d along the path's heading there,
