@@ -840,10 +840,14 @@ class Planner:
         rays see through are dropped (a phantom from a reading paired with the wrong attitude
         would otherwise block for ever). A ray counts up to _CARVE_SHORT_M short of what it
         measured, or of its max range when it saw nothing; readings of 0, NaN or below min
-        range say nothing and carve nothing. Only with X_d at rest (a phantom stops the
-        vehicle): in motion a ray sweeping past a solid's rim would pass just beside points
-        that are real (grazing) and carve them."""
-        if self._v > speed.STOPPED_MPS:
+        range say nothing and carve nothing. A beam carves only with X_d at rest (a phantom
+        stops the vehicle): in motion a ray sweeping past a solid's rim would pass just
+        beside points that are real (grazing) and carve them. A sector (a reading with a
+        field of view) carves in motion too: it read the nearest object anywhere across
+        it, so a point in it nearer than its reading contradicts it (and the arcs that
+        sector readings leave are wider than the object)."""
+        moving = self._v > speed.STOPPED_MPS
+        if moving and not self._sector_rows.size:
             return
         sensors = self.sensors
         r = np.asarray(ranges, dtype=np.float64)
@@ -855,7 +859,7 @@ class Planner:
             return
         sector = sensors.fov_rad > 0.0
         beam = use & ~sector
-        if beam.any():
+        if beam.any() and not moving:
             dirs = sensors.boresights_flu[beam] @ rot.T
             self._memory.carve(
                 state.position_enu, dirs, free[beam], _CARVE_TOLERANCE_M, _CARVE_SUPPORT_M
