@@ -102,3 +102,42 @@ def test_a_sector_reading_enters_the_memory_as_an_arc() -> None:
     bearing = np.degrees(np.arctan2(pts[:, 1], pts[:, 0]))
     np.testing.assert_allclose(np.hypot(pts[:, 0], pts[:, 1]), 4.0, atol=0.2)
     assert bearing.min() < -20.0 and bearing.max() > 20.0
+
+
+def _moving_planner(table, point_xyz: tuple[float, float, float]):  # type: ignore[no-untyped-def]
+    route = Route(np.array([[0.0, 0.0], [200.0, 0.0]]), 0.0, 0.0)
+    planner = Planner(PlannerParams(), table, route, np.array([0.0, 0.0, 2.0]))
+    ranges = table.max_range_m.copy()
+    for i in table.surface_index.values():
+        ranges[i] = 2.0 / math.cos(math.pi / 4)
+    state = VehicleState(np.array([0.0, 0.0, 2.0]), 0.0, 0.0, 0.0)
+    for _ in range(40):  # up to speed
+        res = planner.step(state, ranges, 0.05)
+        state = VehicleState(np.array(res.setpoint.position_enu), 0.0, 0.0, 0.0)
+    assert res.diagnostics.speed_ref_mps > 0.5
+    x = float(res.setpoint.position_enu[0])
+    planner._memory.add(np.array([[x + point_xyz[0], point_xyz[1], point_xyz[2]]]), 0)
+    return planner, state, ranges
+
+
+def test_a_sector_carves_in_motion_a_beam_does_not() -> None:
+    """Moving, a sector that reads 8 m drops a remembered point 4 m ahead 10 degrees off its
+    boresight (it would have read it); a beam along the boresight passes 0.7 m beside it and
+    keeps it (a beam carves only at rest)."""
+    point = (4.0, -4.0 * math.tan(math.radians(10.0)), 2.0)
+    table = ring8()
+    planner, state, ranges = _moving_planner(table, point)
+    ranges[table.index_of_id[0]] = 8.0
+    assert len(planner._memory) == 1
+    planner.step(state, ranges, 0.05)
+    assert len(planner._memory) == 0
+    beams = sensor_table(
+        [
+            SensorConfig.model_validate({k: v for k, v in s.items() if k != "fov_deg"})
+            for s in yaml.safe_load((CONFIG / "ring-8.yaml").read_text())
+        ]
+    )
+    planner, state, ranges = _moving_planner(beams, point)
+    ranges[beams.index_of_id[0]] = 8.0
+    planner.step(state, ranges, 0.05)
+    assert len(planner._memory) == 1
