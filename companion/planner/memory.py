@@ -130,6 +130,13 @@ class ObstacleMemory:
             return 0
         slots = np.fromiter(self._cells.values(), dtype=np.intp, count=len(self._cells))
         rel = self._xyz[slots] - np.asarray(origin_enu, dtype=np.float64)
+        # Only points within the longest reading can be carved: the rest is skipped cheaply
+        # (this runs every cycle in motion).
+        reach = float(np.max(free_m)) + tolerance_m
+        near = np.flatnonzero((rel * rel).sum(axis=1) < reach * reach)
+        if len(near) == 0:
+            return 0
+        rel = rel[near]
         up = np.asarray(up_enu, dtype=np.float64).reshape(3)
         b = np.asarray(boresights_enu, dtype=np.float64).reshape(-1, 3)
         rise = rel @ up  # (k,)
@@ -148,7 +155,9 @@ class ObstacleMemory:
         )
         free = np.asarray(free_m, dtype=np.float64).reshape(1, -1)
         inside = within & (along < free) & (off < tolerance_m) & (flat_len[:, None] > 0.0)
-        return self._drop_through(slots, inside.any(axis=1), support_m)
+        through = np.zeros(len(slots), dtype=bool)
+        through[near] = inside.any(axis=1)
+        return self._drop_through(slots, through, support_m)
 
     def carve(
         self,
