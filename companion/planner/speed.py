@@ -84,7 +84,8 @@ def clearance_limit(
     reaction_s: the stop is planned as if the vehicle kept its speed that long before braking
     (late readings, a position controller that trails its setpoint), so it brakes v t earlier.
     allowance_m: a further distance short of it (the vehicle measured ahead of X_d).
-    rest_margin_m: and a further one for where X_d comes to rest (`rest_margin_m`).
+    rest_margin_m: and a further one for where X_d comes to rest (`rest_margin_m`), when
+    stop_at_band (a blocked planner's stop).
 
     stop_at_band: the planner is blocked or still searching, so it stops before the band
     even when already inside it. Otherwise a path that leads out of the band (an accepted
@@ -97,7 +98,13 @@ def clearance_limit(
     too_close = np.flatnonzero(clearance_m < limit)
     if len(too_close) == 0:
         return math.inf
-    short = _STOP_SHORT_M + max(allowance_m, 0.0) + max(rest_margin_m, 0.0)
+    short = _STOP_SHORT_M + max(allowance_m, 0.0)
+    if stop_at_band:
+        # The rest margin is for the stop of a blocked planner. On a path that is flown
+        # (a retreat along the covered track, a correction leaving the band) a place a
+        # little closer than the trigger ahead is passed through as before: with the margin
+        # X_d would rest short of it for good, neither blocked nor moving.
+        short += max(rest_margin_m, 0.0)
     free = float(look_s[too_close[0]] - s_m) - short
     if reaction_s <= 0.0:
         return braking_speed(free, accel_mps2)
