@@ -176,7 +176,7 @@ def test_without_matplotlib_a_clear_error(tmp_path: Path, monkeypatch: pytest.Mo
 
 
 def test_import_has_no_matplotlib_side_effect() -> None:
-    code = "import sys, harness.plots; assert 'matplotlib' not in sys.modules, 'imported'"
+    code = "import sys, companion.harness.plots; assert 'matplotlib' not in sys.modules, 'imported'"
     subprocess.run(
         [sys.executable, "-c", code], check=True, timeout=60, cwd=Path(__file__).parents[1]
     )
