@@ -101,6 +101,8 @@ class SensorConfig(Strict):
     min_range_m: Annotated[float, Field(ge=0, allow_inf_nan=False)] = 0.1
     max_range_m: Positive = 10.0
     name: str = ""
+    fov_deg: Annotated[float, Field(ge=0, lt=180, allow_inf_nan=False)] = 0.0
+    """Width of the sector one reading covers (a proximity sector: 45), degrees; 0: a beam."""
 
     @field_validator("orientation")
     @classmethod
@@ -144,7 +146,14 @@ class SensorConfig(Strict):
             assert self.quaternion is not None
             u = boresight_from_quaternion_frd(self.quaternion)
         return SensorSpec.from_frd(
-            self.id, self.role, self.group, u, self.min_range_m, self.max_range_m, self.name
+            self.id,
+            self.role,
+            self.group,
+            u,
+            self.min_range_m,
+            self.max_range_m,
+            self.name,
+            math.radians(self.fov_deg),
         )
 
 

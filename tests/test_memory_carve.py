@@ -94,3 +94,27 @@ def test_a_wall_the_rays_end_on_is_kept() -> None:
             ranges[i] = 3.0 / u[0] if 3.0 / u[0] < SENSORS.max_range_m[i] else math.nan
     planner.step(VehicleState(np.array([0.0, 0.0, 2.0]), 0.0, 0.0, 0.0), ranges, 0.05)
     assert len(planner.memory_points_xy) >= before
+
+
+def test_a_sector_carves_across_its_width_only() -> None:
+    """A 45-degree sector (boresight +x, level) that read 6 m: nothing is nearer anywhere
+    across it. Points inside its width nearer than 5.5 m go; those outside its width, beyond
+    its range, or 1 m above its plane stay."""
+    inside = [(4.0, 4.0 * math.tan(math.radians(20.0)), 2.0), (3.0, 0.0, 2.0)]
+    outside = [(4.0, 4.0 * math.tan(math.radians(30.0)), 2.0), (7.0, 0.0, 2.0), (2.0, 0.5, 3.0)]
+    mem = memory_with(inside + outside)
+    gone = mem.carve_sectors(
+        np.array([0.0, 0.0, 2.0]),
+        np.array([0.0, 0.0, 1.0]),
+        np.array([[1.0, 0.0, 0.0]]),
+        np.array([math.radians(22.5)]),
+        np.array([5.5]),
+        0.25,
+    )
+    assert gone == 2
+    kept = {tuple(np.round(p, 3)) for p in mem.points_xy()}
+    assert kept == {tuple(np.round(p[:2], 3)) for p in outside}
+    # the same points, a beam along the boresight: only the one on it goes
+    mem = memory_with(inside + outside)
+    ray = np.array([[1.0, 0.0, 0.0]])
+    assert mem.carve(np.array([0.0, 0.0, 2.0]), ray, np.array([5.5]), 0.25) == 1

@@ -14,12 +14,16 @@ D_MIN = 2.0
 TRIGGER = D_MIN + 0.5 * 0.6  # the defaults' re-plan distance, metres
 
 
-def approach(reaction_s: float, allow_ahead: bool, latency_s: float = 0.5) -> float:
+def approach(
+    reaction_s: float, allow_ahead: bool, latency_s: float = 0.5, rest_margin: bool = True
+) -> float:
     """1-D approach at 1 m/s to a wall 20 m ahead, X_d scheduled as `Planner` does (clearance
     limit, then ramp). The ranges arrive latency_s late and are placed from the position
     now (the wall seems farther by the distance flown meanwhile); the vehicle tracks X_d
     with a second-order position controller (velocity feed-forward), which trails and then
-    overshoots a decelerating setpoint. Returns the vehicle's least true clearance, metres."""
+    overshoots a decelerating setpoint. rest_margin: X_d comes to rest v_d t short of the
+    trigger (`speed.rest_margin_m`), as `Planner` has it. Returns the vehicle's least true
+    clearance, metres."""
     dt, accel, wall = 0.05, 0.5, 20.0
     x_d = v = x = v_x = 0.0
     past = [0.0] * (round(latency_s / dt) + 1)  # vehicle positions, oldest first
@@ -33,8 +37,9 @@ def approach(reaction_s: float, allow_ahead: bool, latency_s: float = 0.5) -> fl
         look_s = np.arange(x_d, x_d + 25.0, 0.1)
         clearance = np.abs(seen - look_s) if math.isfinite(seen) else np.full(len(look_s), 99.0)
         ahead = max(x - x_d, 0.0) if allow_ahead else 0.0
+        margin = speed.rest_margin_m(1.0, reaction_s) if rest_margin else 0.0
         limit = speed.clearance_limit(
-            look_s, clearance, x_d, accel, TRIGGER, True, reaction_s, ahead
+            look_s, clearance, x_d, accel, TRIGGER, True, reaction_s, ahead, margin
         )
         v = speed.ramp(v, min(1.0, limit), accel, dt)
         x_d += v * dt
@@ -52,10 +57,25 @@ def test_latency_and_lag_put_the_ideal_stop_inside_d_min() -> None:
 def test_the_reaction_allowance_keeps_d_min() -> None:
     default = PlannerParams().reaction_time_s
     assert 0.3 <= default <= 0.5
-    assert approach(default, allow_ahead=True) >= D_MIN
-    # both parts are needed in this loop: neither alone keeps D_min
-    assert approach(default, allow_ahead=False) < D_MIN
+    assert approach(default, allow_ahead=True) >= D_MIN + 0.3  # with a margin
+    assert approach(default, allow_ahead=True, latency_s=0.7) >= D_MIN  # and later readings
+    # the rest point's margin is what leaves room: without it the stop ends at the edge
+    assert approach(default, allow_ahead=True, rest_margin=False) < D_MIN + 0.1
+    # the reaction allowance and the vehicle-ahead term are both needed in this loop
+    assert approach(default, allow_ahead=False, rest_margin=False) < D_MIN
     assert approach(0.0, allow_ahead=True) < D_MIN
+
+
+def test_rest_margin_is_the_reaction_distance_at_cruise_speed() -> None:
+    assert speed.rest_margin_m(1.5, 0.4) == pytest.approx(0.6)
+    assert speed.rest_margin_m(1.5, 0.0) == 0.0  # the paper's ideal stop
+    look_s = np.arange(0.0, 20.0, 0.1)
+    clearance = np.abs(10.0 - look_s)
+    plain = speed.clearance_limit(look_s, clearance, 0.0, 0.5, TRIGGER, True, 0.4)
+    short = speed.clearance_limit(look_s, clearance, 0.0, 0.5, TRIGGER, True, 0.4, 0.0, 0.4)
+    d = 10.0 - TRIGGER - 0.05
+    assert plain * 0.4 + plain**2 / 1.0 == pytest.approx(d, abs=0.1)
+    assert short * 0.4 + short**2 / 1.0 == pytest.approx(d - 0.4, abs=0.1)
 
 
 def test_reacting_speed_stops_within_the_distance() -> None:
@@ -116,8 +136,29 @@ def test_the_planner_stops_earlier_for_the_reaction_and_the_vehicle_ahead(
             ).diagnostics.decision
             is Decision.BLOCKED
         )
-    # the rest point is the trigger's either way (the allowance is for speed) ...
-    assert stops[(0.4, 0.0)] == pytest.approx(stops[(0.0, 0.0)], abs=0.02)
+    # with the reaction time X_d rests v_d t (0.4 m) short of the paper's stop ...
+    assert stops[(0.4, 0.0)] == pytest.approx(stops[(0.0, 0.0)] - 0.4, abs=0.02)
     assert 12.0 - stops[(0.0, 0.0)] > D_MIN
-    # ... but with the vehicle measured 0.3 m ahead X_d holds back by as much
-    assert stops[(0.4, 0.3)] == pytest.approx(stops[(0.0, 0.0)] - 0.3, abs=0.02)
+    # ... and with the vehicle measured 0.3 m ahead X_d holds back by as much again
+    assert stops[(0.4, 0.3)] == pytest.approx(stops[(0.4, 0.0)] - 0.3, abs=0.02)
+
+
+def test_blocked_is_said_once_per_stop(monkeypatch: pytest.MonkeyPatch) -> None:
+    """A conflict that vanishes for a cycle at rest (a point carved, then seen again) does
+    not repeat the "blocked" event."""
+    monkeypatch.setattr(Planner, "_carve", lambda self, *args: None)
+    planner = _blocked_planner(0.4)
+    said = []
+    state = VehicleState(np.array([0.0, 0.0, 2.0]), 0.0, 0.0, 0.0)
+    for k in range(600):
+        if k in (500, 540):  # the memory empties for one cycle, then has the ring again
+            ring = planner._memory
+            planner._memory = type(ring)(1.0, 40.0, 4096)
+        res = planner.step(state, flat_ranges(2.0), 0.05)
+        if k in (500, 540):
+            assert res.diagnostics.decision is not Decision.BLOCKED
+            planner._memory = ring
+        said += [e for e in res.diagnostics.events if e.startswith("blocked")]
+        state = VehicleState(np.array(res.setpoint.position_enu), 0.0, 0.0, 0.0)
+    assert planner._blocked
+    assert len(said) == 1

@@ -6,8 +6,19 @@ import numpy as np
 from hypothesis import given
 from hypothesis import strategies as st
 
-from companion.planner.frames import euler_frd_matrix, flu_to_frd, ned_to_enu
-from companion.planner.rotations import body_to_world, r_g, r_mr, r_psi, world_to_body
+from companion.planner import frames
+from companion.planner.frames import flu_to_frd, ned_to_enu
+from companion.planner.rotations import (
+    body_to_world,
+    euler_zyx,
+    r_g,
+    r_mr,
+    r_psi,
+    rot_x,
+    rot_y,
+    rot_z,
+    world_to_body,
+)
 
 angle = st.floats(-math.pi, math.pi, allow_nan=False)
 
@@ -40,10 +51,26 @@ def test_r_g_conventions() -> None:
 def test_r_g_matches_mavlink_ned_frd(roll: float, pitch: float, yaw_ned: float) -> None:
     """R_G(ENU<-FLU) equals the aerospace NED<-FRD matrix seen through the frame swaps."""
     yaw_enu = math.pi / 2 - yaw_ned
-    r_ned = euler_frd_matrix(roll, pitch, yaw_ned)
+    r_ned = euler_zyx(roll, pitch, yaw_ned)
     v_flu = np.array([0.3, -0.5, 0.8])
     via_ned = ned_to_enu(r_ned @ flu_to_frd(v_flu))
     np.testing.assert_allclose(r_g(roll, pitch, yaw_enu) @ v_flu, via_ned, atol=1e-12)
+
+
+@given(angle, angle, angle)
+def test_euler_zyx_is_the_product_of_the_axis_rotations(
+    roll: float, pitch: float, yaw: float
+) -> None:
+    expected = rot_z(yaw) @ rot_y(pitch) @ rot_x(roll)
+    np.testing.assert_allclose(euler_zyx(roll, pitch, yaw), expected, atol=1e-12)
+    np.testing.assert_allclose(
+        r_g(roll, pitch, yaw), rot_z(yaw) @ rot_y(-pitch) @ rot_x(roll), atol=1e-12
+    )
+
+
+def test_one_rotation_matrix() -> None:
+    """The Euler matrix has one owner (`rotations.euler_zyx`); frames keeps no copy."""
+    assert not hasattr(frames, "euler_frd_matrix")
 
 
 def test_r_mr_boresight_is_z_column() -> None:

@@ -59,6 +59,8 @@ def test_expected_outcome(flown: tuple) -> None:  # type: ignore[type-arg]
         assert m["max_lateral_deviation_m"][feature] < e.max_lateral_deviation_over_m
     for decision, count in e.min_decisions.items():
         assert m["decisions"][decision] >= count
+    if e.max_replans is not None:
+        assert m["replans"] <= e.max_replans
 
 
 @pytest.mark.slow

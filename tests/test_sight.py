@@ -38,6 +38,17 @@ def test_speed_limit_stops_within_the_room() -> None:
     assert layout_speed_limit_mps(2.0, 2.3, 0.5, 0.05) == 0.0
 
 
+def test_speed_limit_includes_the_reaction_and_the_lead() -> None:
+    """The stop as planned: a cycle at v, the reaction time at v, the rest point v t short,
+    the vehicle's lead; all of it within the distance the layout can confirm."""
+    v = layout_speed_limit_mps(4.9, 2.3, 0.5, 0.05, reaction_s=0.4)
+    assert v * (0.05 + 0.4) + v * 0.4 + v * v / (2 * 0.5) == pytest.approx(4.9 - 2.3)
+    assert v < layout_speed_limit_mps(4.9, 2.3, 0.5, 0.05)
+    lead = layout_speed_limit_mps(4.9, 2.3, 0.5, 0.05, reaction_s=0.4, allowance_m=0.5)
+    assert lead * 0.85 + lead * lead / (2 * 0.5) == pytest.approx(4.9 - 2.3 - 0.5)
+    assert layout_speed_limit_mps(4.9, 2.3, 0.5, 0.05, reaction_s=0.4, allowance_m=3.0) == 0.0
+
+
 def test_planner_announces_and_applies_the_layout_limit() -> None:
     """With v_d above what a level layout can stop for, X_d never exceeds the limit."""
     from companion.planner import Planner, PlannerParams, Route, VehicleState
@@ -56,7 +67,33 @@ def test_planner_announces_and_applies_the_layout_limit() -> None:
         res = planner.step(state, ranges, 0.05)
         events += res.diagnostics.events
         speeds.append(res.diagnostics.speed_ref_mps)
-    limit = layout_speed_limit_mps(wall_flag_distance_m(sensors, 2.0, 0.6), 2.3, 1.0, 0.05)
-    assert limit < 3.0
+    flag = wall_flag_distance_m(sensors, 2.0, 0.6)
+    limit = layout_speed_limit_mps(flag, 2.3, 1.0, 0.05, params.reaction_time_s)
+    assert limit < layout_speed_limit_mps(flag, 2.3, 1.0, 0.05) < 3.0
     assert max(speeds) == pytest.approx(limit, rel=1e-6)
     assert sum("speed limited" in e for e in events) == 1
+
+
+def test_the_vehicle_ahead_of_x_d_lowers_the_layout_limit() -> None:
+    """A vehicle measured ahead of its setpoint (an overshooting position controller) has
+    that much less room: the layout's limit drops while it lasts."""
+    from companion.planner import Planner, PlannerParams, Route, VehicleState
+
+    sensors = table("horizontal-7.yaml")
+    params = PlannerParams(v_d_mps=3.0, accel_max_mps2=1.0)
+    route = Route(np.array([[0.0, 0.0], [200.0, 0.0]]), 0.0, 0.0)
+    planner = Planner(params, sensors, route, np.array([0.0, 0.0, 2.0]))
+    ranges = sensors.max_range_m.copy()
+    for i in sensors.surface_index.values():
+        ranges[i] = 2.0 / math.cos(math.pi / 4)
+    state = VehicleState(np.array([0.0, 0.0, 2.0]), 0.0, 0.0, 0.0)
+    speeds = []
+    for _ in range(200):
+        res = planner.step(state, ranges, 0.05)
+        speeds.append(res.diagnostics.speed_ref_mps)
+        ahead = np.array(res.setpoint.position_enu) + np.array([0.6, 0.0, 0.0])
+        state = VehicleState(ahead, 0.0, 0.0, 0.0)
+    flag = wall_flag_distance_m(sensors, 2.0, 0.6)
+    limit = layout_speed_limit_mps(flag, 2.3, 1.0, 0.05, 0.4, allowance_m=0.6)
+    assert max(speeds) == pytest.approx(limit, rel=1e-6)
+    assert limit < layout_speed_limit_mps(flag, 2.3, 1.0, 0.05, 0.4)

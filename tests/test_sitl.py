@@ -151,9 +151,10 @@ def assert_flight(flight: SitlFlight) -> None:
 
 
 WIRED_STOP = (
-    "with four SITL flights side by side the wired path's late readings and ArduCopter's "
-    "overshoot of a decelerating target leave the stop at the edge of D_min: with the "
-    "reaction allowance one run kept it, the next ended at 1.986 m"
+    "the planner's stop keeps a margin now (X_d rests v t short of the trigger: 2.49 m in a "
+    "run with four flights side by side), but on a loaded machine the service can starve: "
+    "position went stale for 1.1 s, the failsafe's STOP sent nothing, and ArduCopter flew on "
+    "its last position+velocity target 1.3 m past X_d (1.686 m); another loaded run 0.925 m"
 )
 
 
@@ -181,7 +182,9 @@ def test_sensors_wired_to_the_autopilot_reach_the_planner(runs: dict[str, Any]) 
 
 @pytest.mark.xfail(strict=False, reason=WIRED_STOP)
 def test_flight_with_sensors_wired_to_the_autopilot(runs: dict[str, Any]) -> None:
-    assert_flight(_get(runs, "wired-wall"))
+    flight: SitlFlight = _get(runs, "wired-wall")
+    print(f"wired-wall: {_figures(flight)}")  # pytest -rP shows it
+    assert_flight(flight)
 
 
 def test_default_ekf_boot_then_fly(runs: dict[str, Any]) -> None:

@@ -20,6 +20,7 @@ from companion.planner.decision import thresholds as eq7_thresholds
 from companion.planner.rotations import r_g
 from companion.planner.sensors import SensorTable
 from companion.sim.scenario import Scenario
+from companion.sim.sensing import SensorFan
 from companion.sim.vehicle import make_vehicle
 from companion.sim.world import World
 
@@ -70,14 +71,17 @@ class RunResult:
     does not count), seconds; not deterministic."""
 
 
-def sense(world: World, sensors: SensorTable, state: VehicleState) -> np.ndarray:
+def sense(
+    world: World, sensors: SensorTable, state: VehicleState, fan: SensorFan | None = None
+) -> np.ndarray:
     """True ranges of every sensor at the vehicle pose, metres; max range where nothing hit
-    (what an autopilot reports for "out of range")."""
+    (what an autopilot reports for "out of range"). A sensor with a field of view reads the
+    nearest hit across it (`companion.sim.sensing`); fan: the table's rays, made once per
+    flight by the caller (made here if None)."""
     rot = r_g(state.roll_rad, state.pitch_rad, state.yaw_rad)
-    dirs = sensors.boresights_flu @ rot.T
-    origins = np.empty_like(dirs)
-    origins[:] = state.position_enu  # (np.broadcast_to costs more than the copy)
-    ranges = world.raycast(origins, dirs, sensors.max_range_m)
+    if fan is None:
+        fan = SensorFan(sensors.boresights_flu, sensors.fov_rad)
+    ranges = fan.ranges(world.raycast, state.position_enu, rot, sensors.max_range_m)
     return np.where(np.isfinite(ranges), ranges, sensors.max_range_m)
 
 
@@ -99,6 +103,7 @@ def run(
     route = scenario.route_obj()
     start = scenario.start(world)
     planner = Planner(params, sensors, route, start)
+    fan = SensorFan(sensors.boresights_flu, sensors.fov_rad)
     initial = VehicleState(start, 0.0, 0.0, route.start_heading_rad)
     vehicle = make_vehicle(scenario.vehicle, initial)
     dt = scenario.dt_s
@@ -114,7 +119,7 @@ def run(
     goal = route.base_points[-1]
     for k in range(steps):
         t = (k + 1) * dt
-        ranges = sense(world, sensors, state)
+        ranges = sense(world, sensors, state, fan)
         if sensor_filter is not None:
             ranges = sensor_filter(t, ranges)
         t0 = time.thread_time()

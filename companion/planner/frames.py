@@ -72,20 +72,6 @@ def attitude_enu_to_ned(
     return roll_rad, pitch_rad, yaw_enu_to_ned(yaw_rad)
 
 
-def euler_frd_matrix(roll_rad: float, pitch_rad: float, yaw_rad: float) -> FloatArray:
-    """Rz(yaw) @ Ry(pitch) @ Rx(roll) in a z-down frame (MAVLink/aerospace 3-2-1 Euler)."""
-    cr, sr = math.cos(roll_rad), math.sin(roll_rad)
-    cp, sp = math.cos(pitch_rad), math.sin(pitch_rad)
-    cy, sy = math.cos(yaw_rad), math.sin(yaw_rad)
-    return np.array(
-        [
-            [cy * cp, cy * sp * sr - sy * cr, cy * sp * cr + sy * sr],
-            [sy * cp, sy * sp * sr + cy * cr, sy * sp * cr - cy * sr],
-            [-sp, cp * sr, cp * cr],
-        ]
-    )
-
-
 def quaternion_to_matrix(q_wxyz: FloatArray) -> FloatArray:
     """Rotation matrix of a quaternion (w, x, y, z), normalised first.
 

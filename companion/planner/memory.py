@@ -21,8 +21,9 @@ from __future__ import annotations
 import math
 
 import numpy as np
+import numpy.typing as npt
 
-from companion.planner.types import FloatArray
+from companion.planner.types import BoolArray, FloatArray
 
 _INITIAL_SLOTS = 64
 
@@ -110,6 +111,54 @@ class ObstacleMemory:
         self.generation += 1
         return int(far.sum())
 
+    def carve_sectors(
+        self,
+        origin_enu: FloatArray,
+        up_enu: FloatArray,
+        boresights_enu: FloatArray,
+        half_width_rad: FloatArray,
+        free_m: FloatArray,
+        tolerance_m: float,
+        support_m: float = 0.0,
+    ) -> int:
+        """Free-space carving by sector readings: sector i (boresight boresights_enu[i], world
+        ENU unit vector, spread +-half_width_rad[i] about up_enu, the body's up axis) saw
+        nothing nearer than free_m[i] anywhere across it. A point within tolerance_m of the
+        sector's fan surface, inside its width and nearer than free_m[i] (along the fan), is
+        dropped; support_m as in `carve`. Returns how many points were dropped."""
+        if not self._cells or len(free_m) == 0:
+            return 0
+        slots = np.fromiter(self._cells.values(), dtype=np.intp, count=len(self._cells))
+        rel = self._xyz[slots] - np.asarray(origin_enu, dtype=np.float64)
+        # Only points within the longest reading can be carved: the rest is skipped cheaply
+        # (this runs every cycle in motion).
+        reach = float(np.max(free_m)) + tolerance_m
+        near = np.flatnonzero((rel * rel).sum(axis=1) < reach * reach)
+        if len(near) == 0:
+            return 0
+        rel = rel[near]
+        up = np.asarray(up_enu, dtype=np.float64).reshape(3)
+        b = np.asarray(boresights_enu, dtype=np.float64).reshape(-1, 3)
+        rise = rel @ up  # (k,)
+        flat = rel - rise[:, None] * up  # (k, 3) across the up axis
+        flat_len = np.sqrt((flat * flat).sum(axis=1))
+        b_rise = b @ up  # (n,)
+        b_flat = b - b_rise[:, None] * up
+        b_flat_len = np.maximum(np.sqrt((b_flat * b_flat).sum(axis=1)), 1e-9)
+        # the fan surface: rise = flat_len * b_rise / b_flat_len; the bearing within it
+        off = np.abs(rise[:, None] - flat_len[:, None] * (b_rise / b_flat_len)[None, :])
+        cos_bearing = (flat @ b_flat.T) / np.maximum(flat_len[:, None] * b_flat_len[None, :], 1e-9)
+        along = flat_len[:, None] / b_flat_len[None, :]
+        widen = np.arcsin(np.minimum(tolerance_m / np.maximum(flat_len, 1e-9), 1.0))
+        within = cos_bearing >= np.cos(
+            np.minimum(np.asarray(half_width_rad)[None, :] + widen[:, None], np.pi)
+        )
+        free = np.asarray(free_m, dtype=np.float64).reshape(1, -1)
+        inside = within & (along < free) & (off < tolerance_m) & (flat_len[:, None] > 0.0)
+        through = np.zeros(len(slots), dtype=bool)
+        through[near] = inside.any(axis=1)
+        return self._drop_through(slots, through, support_m)
+
     def carve(
         self,
         origin_enu: FloatArray,
@@ -136,7 +185,13 @@ class ObstacleMemory:
         off_sq = (rel * rel).sum(axis=1)[:, None] - along * along
         free = np.asarray(free_m, dtype=np.float64).reshape(1, -1)
         inside = (along > 0.0) & (along < free) & (off_sq < tolerance_m * tolerance_m)
-        through = inside.any(axis=1)
+        return self._drop_through(slots, inside.any(axis=1), support_m)
+
+    def _drop_through(
+        self, slots: npt.NDArray[np.intp], through: BoolArray, support_m: float
+    ) -> int:
+        """Drop the points (memory slots) that a carve found inside free space, but those with
+        a neighbour within support_m that stays. Returns how many were dropped."""
         gone = np.flatnonzero(through)
         if len(gone) and support_m > 0.0 and not through.all():
             pts = self._xyz[slots]

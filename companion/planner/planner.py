@@ -48,7 +48,13 @@ from companion.planner.path import Path
 from companion.planner.retreat import RetreatPlan, backwards_track, retreat_search
 from companion.planner.rotations import r_g
 from companion.planner.route import Route
-from companion.planner.sensors import SURFACE_FOR_GROUP, Group, SensorTable, range_points_world
+from companion.planner.sensors import (
+    SURFACE_FOR_GROUP,
+    Group,
+    SensorTable,
+    range_points_world,
+    sector_fan_flu,
+)
 from companion.planner.sight import layout_speed_limit_mps, wall_flag_distance_m
 from companion.planner.terrain import advance_exact, advance_paper, aim_point, desired_pitch
 from companion.planner.types import (
@@ -88,6 +94,14 @@ _CARVE_TOLERANCE_M = 0.25
 """How close to a ray a remembered point must lie to be cleared by it, metres (one cell)."""
 _CARVE_SUPPORT_M = 0.5
 """A point with a neighbour this close that stays is on a surface: not carved, metres."""
+_ESCAPE_TOLERANCE_M = 0.05
+"""A sample of an escape (a correction accepted inside the re-plan band) conflicts again only
+if it has come this much closer to the memory than when the correction was accepted, m."""
+_BLOCKED_AGAIN_M = 0.5
+"""Left without a new path, the blocked state is said again only once X_d has moved this
+far from where it was left, metres."""
+_SECTOR_ARC_SPACING_M = 0.5
+"""Spacing of the points a sector reading's arc enters the memory with, metres."""
 _YAW_RATE_AT_REST_RAD_S = 0.8
 _YAW_ALIGNED_RAD = 0.1
 _GROUND_HOLD_RANGE = 4.0
@@ -260,8 +274,19 @@ class Planner:
         self._failed_cycle = 0
         self._search_units = 0
         self._search: tuple[tuple[object, ...], Generator[bool, None, _Resolved]] | None = None
-        self._v_layout = params.v_d_mps
+        self._flag_m = 0.0  # how far ahead the layout flags a wall (`sight`), metres
+        self._v_cruise = params.v_d_mps  # v_d, or the layout's limit without the lead
+        self._v_layout = params.v_d_mps  # that limit with this cycle's lead
         self._ahead_m = 0.0  # the vehicle ahead of X_d along the path, metres
+        # Obstacle sensors that read a sector (`SensorSpec.fov_rad`), and the rows of this
+        # cycle's steep points (`_steep_points`), for `_sector_arcs`.
+        self._sector_rows = np.flatnonzero(sensors.fov_rad > 0.0)
+        self._steep_rows = np.zeros(0, dtype=np.intp)
+        # An accepted correction's stretch inside the re-plan band: arc lengths on the path
+        # and the clearances it was accepted with (`_escape_exempt`); None if it has none.
+        self._escape: tuple[FloatArray, FloatArray] | None = None
+        # X_d where the blocked state was left without a new path (`_set_blocked`).
+        self._unblocked_xy: FloatArray | None = None
 
     def __deepcopy__(self, memo: dict[int, object]) -> Planner:
         """A copy of the planner; a re-plan search still going on (a generator, which cannot
@@ -295,6 +320,7 @@ class Planner:
         self._set_path(route, PathMode.ROUTE, Side.NONE)
         self._detour_end_s = 0.0
         self._blocked = False
+        self._unblocked_xy = None
 
     @property
     def path(self) -> Path:
@@ -348,6 +374,10 @@ class Planner:
         steep_xyz, steep_inflation = self._steep_points(
             points, valid, valid_list, detected, ground, phi_star
         )
+        if self._sector_rows.size and len(steep_xyz):
+            steep_xyz, steep_inflation = self._sector_arcs(
+                state.position_enu, rot, ranges, valid, steep_xyz, steep_inflation
+            )
         decision = decide(phi_star, self._thresholds)
         self._carve(state, rot, ranges, valid)
         if len(steep_xyz):
@@ -358,7 +388,10 @@ class Planner:
 
         # Horizontal correction when the path ahead conflicts with remembered points.
         self._look = None  # the memory has changed: measure the look-ahead afresh
+        was_blocked = self._blocked
         replanned = self._update_path(state, ranges, valid, events)
+        if was_blocked and not self._blocked and not replanned:
+            self._unblocked_xy = self._xd_prev[:2].copy()
         if self._blocked:
             decision = Decision.BLOCKED
 
@@ -570,7 +603,36 @@ class Planner:
             else:
                 theta, foot = 0.5 * math.pi, 0.0
             inflation.append(max(params.d_min_m / math.sin(theta) - slack, 0.0) + foot)
+        self._steep_rows = np.asarray(steep_rows, dtype=np.intp)
         return xyz, np.array(inflation)
+
+    def _sector_arcs(
+        self,
+        position_enu: FloatArray,
+        rot: FloatArray,
+        ranges: FloatArray,
+        valid: BoolArray,
+        xyz: FloatArray,
+        inflation: FloatArray,
+    ) -> tuple[FloatArray, FloatArray]:
+        """A steep reading of a sensor with a field of view (a proximity sector) says that
+        the nearest object in the sector is at that range, not where on the arc: the whole
+        arc across the sector, points _SECTOR_ARC_SPACING_M apart, enters the memory with
+        the boresight point's inflation. (k, 3) points and (k,) inflations, the arcs added."""
+        rows = self._steep_rows
+        fov = self.sensors.fov_rad[rows]
+        sector = fov > 0.0
+        if not sector.any():
+            return xyz, inflation
+        extra_xyz, extra_inflation = [xyz], [inflation]
+        for k in np.flatnonzero(sector):
+            i = int(rows[k])
+            r = float(ranges[i])
+            n = max(2, math.ceil(float(fov[k]) * r / _SECTOR_ARC_SPACING_M) + 1)
+            fan = sector_fan_flu(self.sensors.boresights_flu[i], float(fov[k]), n)
+            extra_xyz.append(position_enu + r * (fan @ rot.T))
+            extra_inflation.append(np.full(n, inflation[k]))
+        return np.vstack(extra_xyz), np.concatenate(extra_inflation)
 
     def _path_heading(self) -> float:
         return self._path.segments[self._segment].heading(self._t)
@@ -588,6 +650,7 @@ class Planner:
         self._stops = []
         self._after_retreat = None
         self._search = None
+        self._escape = None
 
     def _record_track(self, x: float, y: float) -> None:
         """Append X_d to the covered track every _TRACK_SPACING_M; going back over the
@@ -685,12 +748,14 @@ class Planner:
             return False
         # The samples are within lookahead of here, so every remembered point closer to one
         # than the trigger distance is within `radius` of here: no need to filter first.
-        if not look.conflict:
+        trigger = params.d_min_m + 0.5 * params.clearance_margin_m
+        conflict_samples = look.clearance < trigger if look.conflict else None
+        if conflict_samples is not None and self._escape is not None and not self._blocked:
+            conflict_samples &= ~self._escape_exempt(look.s, look.clearance)
+        if conflict_samples is None or not conflict_samples.any():
             self._blocked = False
             self._search = None
             return False
-        trigger = params.d_min_m + 0.5 * params.clearance_margin_m
-        conflict_samples = look.clearance < trigger
         if self._mode is PathMode.RETREAT and not self._blocked:
             return False  # backing out along the covered track: it is known to be free
         nearby, nearby_inflation = self._memory.near_with_inflation(here, radius)
@@ -747,9 +812,7 @@ class Planner:
         if resolved is None:
             # Moving, X_d changes every cycle and the search would start afresh: one that
             # does not fit in a cycle counts as failed (blocked: stop, then search at rest).
-            if not self._blocked:
-                events.append("blocked: no path keeps D_min, stopping")
-            self._blocked = True
+            self._set_blocked(events)
             self._failed_attempt, self._failed_cycle = attempt, self._cycle
             return False
         if resolved.detour is not None:
@@ -791,12 +854,21 @@ class Planner:
                 resolved: _Resolved = done.value
                 return resolved
             if blocked_mark:
-                if not self._blocked:
-                    events.append("blocked: no path keeps D_min, stopping")
-                self._blocked = True
+                self._set_blocked(events)
             else:
                 self._search_units += 1
         return None
+
+    def _set_blocked(self, events: list[str]) -> None:
+        """Enter the blocked state; say so once per stop. A conflict that vanishes for a
+        cycle (a point carved at rest, then seen again) must not repeat the event: after the
+        blocked state was left without a new path, it is said again only once X_d has moved
+        _BLOCKED_AGAIN_M from where it was left."""
+        if not self._blocked:
+            left = self._unblocked_xy
+            if left is None or math.hypot(*(self._xd_prev[:2] - left)) >= _BLOCKED_AGAIN_M:
+                events.append("blocked: no path keeps D_min, stopping")
+        self._blocked = True
 
     def _accept(self, detour: Detour, events: list[str], stop_first: bool) -> None:
         if detour.side is not self._side or self._mode is PathMode.ROUTE:
@@ -804,10 +876,39 @@ class Planner:
         if self._blocked:
             events.append("resumed")
         self._blocked = False
+        self._unblocked_xy = None
         self._set_path(detour.path, detour.mode, detour.side)
         if stop_first:
             self._stops = [0.0]
         self._detour_end_s = detour.path.length - (self.route.length - detour.rejoin_s)
+        self._escape = self._escape_stretch()
+
+    def _escape_stretch(self) -> tuple[FloatArray, FloatArray] | None:
+        """The new path's first stretch inside the re-plan band, with the clearances it was
+        accepted with (arc lengths, clearances); None when it starts outside the band.
+
+        A correction that starts inside the band leads out of it (`avoidance.ESCAPE_SLOPE`);
+        the speed schedule flies it (places no closer than here are free). The conflict check
+        must agree, or it finds the same stretch in conflict every cycle and re-plans each
+        time (the vehicle crawls out, re-planning 20 times a second)."""
+        look = self._look_ahead()
+        trigger = self.params.d_min_m + 0.5 * self.params.clearance_margin_m
+        if look.clearance is None or len(look.s) == 0 or look.clearance[0] >= trigger:
+            return None
+        out = np.flatnonzero(look.clearance >= trigger)
+        end = int(out[0]) if len(out) else len(look.s)
+        return look.s[:end].copy(), look.clearance[:end].copy()
+
+    def _escape_exempt(self, look_s: FloatArray, clearance: FloatArray) -> BoolArray:
+        """Look-ahead samples on the accepted escape stretch that are no closer to the memory
+        than when it was accepted (less _ESCAPE_TOLERANCE_M): not a conflict. A point seen
+        since, that comes closer, makes the sample a conflict again."""
+        assert self._escape is not None
+        esc_s, esc_clear = self._escape
+        on = look_s <= esc_s[-1]
+        planned = np.interp(look_s, esc_s, esc_clear)
+        exempt: BoolArray = on & (clearance >= planned - _ESCAPE_TOLERANCE_M)
+        return exempt
 
     def _start_retreat(self, plan: RetreatPlan, events: list[str]) -> None:
         """Back out along the covered track, stop, turn, and take the correction found."""
@@ -822,6 +923,7 @@ class Planner:
         self._after_retreat = (detour.mode, detour.side, rejoin_on_path)
         events.append(f"dead end: backing out {plan.back_m:.0f} m, then {detour.side.value}")
         self._blocked = False
+        self._unblocked_xy = None
 
     def _carve(
         self, state: VehicleState, rot: FloatArray, ranges: FloatArray, valid: BoolArray
@@ -830,10 +932,14 @@ class Planner:
         rays see through are dropped (a phantom from a reading paired with the wrong attitude
         would otherwise block for ever). A ray counts up to _CARVE_SHORT_M short of what it
         measured, or of its max range when it saw nothing; readings of 0, NaN or below min
-        range say nothing and carve nothing. Only with X_d at rest (a phantom stops the
-        vehicle): in motion a ray sweeping past a solid's rim would pass just beside points
-        that are real (grazing) and carve them."""
-        if self._v > speed.STOPPED_MPS:
+        range say nothing and carve nothing. A beam carves only with X_d at rest (a phantom
+        stops the vehicle): in motion a ray sweeping past a solid's rim would pass just
+        beside points that are real (grazing) and carve them. A sector (a reading with a
+        field of view) carves in motion too: it read the nearest object anywhere across
+        it, so a point in it nearer than its reading contradicts it (and the arcs that
+        sector readings leave are wider than the object)."""
+        moving = self._v > speed.STOPPED_MPS
+        if moving and not self._sector_rows.size:
             return
         sensors = self.sensors
         r = np.asarray(ranges, dtype=np.float64)
@@ -843,10 +949,27 @@ class Planner:
         use = (valid | nothing) & (free > 0.0)
         if not use.any() or len(self._memory) == 0:
             return
-        dirs = sensors.boresights_flu[use] @ rot.T
-        self._memory.carve(
-            state.position_enu, dirs, free[use], _CARVE_TOLERANCE_M, _CARVE_SUPPORT_M
-        )
+        sector = sensors.fov_rad > 0.0
+        beam = use & ~sector
+        if beam.any() and not moving:
+            dirs = sensors.boresights_flu[beam] @ rot.T
+            self._memory.carve(
+                state.position_enu, dirs, free[beam], _CARVE_TOLERANCE_M, _CARVE_SUPPORT_M
+            )
+        cone = use & sector
+        if cone.any() and len(self._memory):
+            # A sector reading is the nearest object anywhere across the sector: nothing
+            # is nearer in all of it, so its whole width carves (a reading's arc, entered
+            # from farther away, is over-wide once seen from nearer).
+            self._memory.carve_sectors(
+                state.position_enu,
+                rot[:, 2],
+                sensors.boresights_flu[cone] @ rot.T,
+                0.5 * sensors.fov_rad[cone],
+                free[cone],
+                _CARVE_TOLERANCE_M,
+                _CARVE_SUPPORT_M,
+            )
 
     def _vehicle_ahead_m(self, position_enu: FloatArray) -> float:
         """How far the vehicle is ahead of last cycle's X_d along the path's heading there,
@@ -870,22 +993,26 @@ class Planner:
         return left, right
 
     def _update_layout_limit(self, dt_s: float, events: list[str]) -> None:
-        """The speed from which a wall first flagged as steep can still be stopped for
-        (`sight`); recomputed when H_d or the period changes, announced when it binds."""
-        key = (self._h_d, dt_s)
-        if key == self._sight_key:
-            return
-        self._sight_key = key
+        """The speed from which a wall first flagged as steep can still be stopped for,
+        reaction allowance included (`sight`): the flag distance is recomputed when H_d or
+        the period changes (and the limit announced when it binds), the limit itself every
+        cycle with the vehicle's measured lead on X_d."""
         params = self.params
-        flag = wall_flag_distance_m(self.sensors, self._h_d, params.phi_max_rad)
         trigger = params.d_min_m + 0.5 * params.clearance_margin_m
-        v_max = layout_speed_limit_mps(flag, trigger, params.accel_max_mps2, dt_s)
-        self._v_layout = min(params.v_d_mps, v_max)
-        if self._v_layout < params.v_d_mps:
-            events.append(
-                f"sensor layout flags a wall as steep only {flag:.1f} m ahead: "
-                f"speed limited to {self._v_layout:.2f} m/s (v_d {params.v_d_mps:g})"
-            )
+        a, t = params.accel_max_mps2, params.reaction_time_s
+        key = (self._h_d, dt_s)
+        if key != self._sight_key:
+            self._sight_key = key
+            self._flag_m = wall_flag_distance_m(self.sensors, self._h_d, params.phi_max_rad)
+            v_max = layout_speed_limit_mps(self._flag_m, trigger, a, dt_s, t)
+            self._v_cruise = min(params.v_d_mps, v_max)
+            if self._v_cruise < params.v_d_mps:
+                events.append(
+                    f"sensor layout flags a wall as steep only {self._flag_m:.1f} m ahead: "
+                    f"speed limited to {self._v_cruise:.2f} m/s (v_d {params.v_d_mps:g})"
+                )
+        v_now = layout_speed_limit_mps(self._flag_m, trigger, a, dt_s, t, self._ahead_m)
+        self._v_layout = min(params.v_d_mps, v_now)
 
     def _speed_target(self) -> float:
         """Reference speed allowed here (`speed`): v_d (or the layout's limit), lowered
@@ -916,6 +1043,7 @@ class Planner:
                     stop_at_band=self._blocked or self._search is not None,
                     reaction_s=params.reaction_time_s,
                     allowance_m=self._ahead_m,
+                    rest_margin_m=speed.rest_margin_m(self._v_cruise, params.reaction_time_s),
                 ),
             )
         return max(v, 0.0)

@@ -36,15 +36,12 @@ def rot_z(angle_rad: float) -> FloatArray:
     return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
 
 
-def r_g(roll_rad: float, pitch_rad: float, yaw_rad: float) -> FloatArray:
-    """R_G of eqs (1)-(2): body (FLU) to world (ENU) rotation from the vehicle attitude.
-
-    Angles in radians: roll right-wing-down positive, pitch nose-up positive, yaw from +x
-    (east) counter-clockwise.
-    """
+def euler_zyx(roll_rad: float, pitch_rad: float, yaw_rad: float) -> FloatArray:
+    """Rz(yaw) @ Ry(pitch) @ Rx(roll): the 3-2-1 Euler rotation, the one rotation matrix of
+    the project. In a z-down frame (MAVLink's body FRD in NED, aerospace angles) it maps body
+    vectors to the parent frame as it stands; `r_g` is the same matrix for ENU/FLU angles."""
     cr, sr = math.cos(roll_rad), math.sin(roll_rad)
-    # Ry(-pitch): nose up lifts the body x axis towards +z.
-    cp, sp = math.cos(pitch_rad), -math.sin(pitch_rad)
+    cp, sp = math.cos(pitch_rad), math.sin(pitch_rad)
     cy, sy = math.cos(yaw_rad), math.sin(yaw_rad)
     return np.array(
         [
@@ -53,6 +50,16 @@ def r_g(roll_rad: float, pitch_rad: float, yaw_rad: float) -> FloatArray:
             [-sp, cp * sr, cp * cr],
         ]
     )
+
+
+def r_g(roll_rad: float, pitch_rad: float, yaw_rad: float) -> FloatArray:
+    """R_G of eqs (1)-(2): body (FLU) to world (ENU) rotation from the vehicle attitude.
+
+    Angles in radians: roll right-wing-down positive, pitch nose-up positive, yaw from +x
+    (east) counter-clockwise. Nose-up is a negative rotation about the FLU y axis (it points
+    left): `euler_zyx(roll, -pitch, yaw)`.
+    """
+    return euler_zyx(roll_rad, -pitch_rad, yaw_rad)
 
 
 def r_mr(a_rad: float, b_rad: float, c_rad: float) -> FloatArray:

@@ -17,7 +17,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from companion.planner.frames import euler_frd_matrix, frd_to_flu, quaternion_to_matrix
+from companion.planner.frames import frd_to_flu, quaternion_to_matrix
+from companion.planner.rotations import euler_zyx
 from companion.planner.types import BoolArray, FloatArray
 
 MAV_SENSOR_ROTATION_CUSTOM = 100
@@ -102,7 +103,7 @@ SURFACE_FOR_GROUP = {
 
 def boresight_from_rpy_frd(roll_rad: float, pitch_rad: float, yaw_rad: float) -> FloatArray:
     """Boresight unit vector in body FRD for a MAVLink-style rotation of "forward"."""
-    return euler_frd_matrix(roll_rad, pitch_rad, yaw_rad)[:, 0].copy()
+    return euler_zyx(roll_rad, pitch_rad, yaw_rad)[:, 0].copy()
 
 
 def boresight_from_mav_orientation(orientation: int) -> FloatArray:
@@ -159,6 +160,11 @@ class SensorSpec:
     sensor_id: the DISTANCE_SENSOR id it reports as. boresight_flu: unit vector in body FLU.
     min_range_m / max_range_m: readings of 0, below min or at/over max mean "nothing detected"
     (Condition 1 of the paper and the MAVLink convention).
+    fov_rad: width of the sector the reading covers, radians, spread about the body's up
+    axis (yaw) round the boresight; 0 for a narrow beam. A proximity sector (ArduPilot
+    reports the nearest object within 45 degrees) reads the nearest object anywhere in it:
+    the planner takes such a reading as "something at this range within the sector"
+    (`sector_fan_flu`).
     """
 
     sensor_id: int
@@ -168,6 +174,7 @@ class SensorSpec:
     min_range_m: float
     max_range_m: float
     name: str = ""
+    fov_rad: float = 0.0
 
     def __post_init__(self) -> None:
         u = np.asarray(self.boresight_flu, dtype=np.float64).reshape(3)
@@ -188,6 +195,11 @@ class SensorSpec:
                 f"sensor {self.sensor_id}: need 0 <= min_range_m < max_range_m, got "
                 f"{self.min_range_m}, {self.max_range_m}"
             )
+        if not (math.isfinite(self.fov_rad) and 0.0 <= self.fov_rad < math.pi):
+            raise ValueError(
+                f"sensor {self.sensor_id}: fov must be within [0, 180) degrees, got "
+                f"{math.degrees(self.fov_rad)}"
+            )
 
     @property
     def boresight_frd(self) -> FloatArray:
@@ -203,6 +215,7 @@ class SensorSpec:
         min_range_m: float,
         max_range_m: float,
         name: str = "",
+        fov_rad: float = 0.0,
     ) -> SensorSpec:
         return cls(
             sensor_id,
@@ -212,6 +225,7 @@ class SensorSpec:
             float(min_range_m),
             float(max_range_m),
             name,
+            float(fov_rad),
         )
 
 
@@ -236,6 +250,7 @@ class SensorTable:
         # "> 0 and >= min" as one comparison: >= the larger of min and the smallest float > 0.
         self._detect_from_m = np.maximum(self.min_range_m, np.nextafter(0.0, 1.0))
         self.max_range_m = np.array([s.max_range_m for s in specs])
+        self.fov_rad = np.array([s.fov_rad for s in specs])
         self.obstacle_index = np.array(
             [i for i, s in enumerate(specs) if s.role is Role.OBSTACLE], dtype=np.intp
         )
@@ -261,6 +276,19 @@ class SensorTable:
         r = np.asarray(ranges_m, dtype=np.float64)
         detects: BoolArray = (r >= self._detect_from_m) & (r < self.max_range_m)
         return detects
+
+
+def sector_fan_flu(boresight_flu: FloatArray, fov_rad: float, n: int) -> FloatArray:
+    """n unit directions (n, 3), body FLU, spread evenly across a sector of fov_rad about the
+    body's up axis, centred on the boresight (the boresight itself when fov_rad is 0 or n
+    is 1). A sector reading r says: the nearest object in the sector is r away along one of
+    these, and nothing is nearer along any of them."""
+    u = np.asarray(boresight_flu, dtype=np.float64).reshape(3)
+    if fov_rad <= 0.0 or n <= 1:
+        return u[None, :].copy()
+    a = np.linspace(-0.5 * fov_rad, 0.5 * fov_rad, n)
+    c, s = np.cos(a), np.sin(a)
+    return np.column_stack([c * u[0] - s * u[1], s * u[0] + c * u[1], np.full(n, u[2])])
 
 
 def range_points_world(

@@ -7,7 +7,9 @@ level obstacle sensors with down-tilted surface sensors cannot tell a wall from 
 relief until it is close: the chord from the ground point in front (H_d below, g ahead) to
 the level hit on the wall, d ahead, is steeper than phi*_max only when
 d < g + H_d / tan(phi*_max). Whatever the layout, the reference speed must let the vehicle
-stop before it comes within the re-plan distance of a wall first flagged there.
+stop before it comes within the re-plan distance of a wall first flagged there, including
+the reaction allowance of the stop (`PlannerParams.reaction_time_s`): what the sensors can
+confirm must cover the reaction distance as well as the braking distance.
 
 All lengths in metres, angles in radians, body FLU with the vehicle level.
 """
@@ -57,14 +59,24 @@ def wall_flag_distance_m(sensors: SensorTable, h_d_m: float, threshold_rad: floa
 
 
 def layout_speed_limit_mps(
-    flag_distance_m: float, replan_distance_m: float, accel_mps2: float, dt_s: float
+    flag_distance_m: float,
+    replan_distance_m: float,
+    accel_mps2: float,
+    dt_s: float,
+    reaction_s: float = 0.0,
+    allowance_m: float = 0.0,
 ) -> float:
-    """Largest speed v from which the vehicle stops (braking at accel_mps2, after one
-    cycle of dt_s at v) before it comes within replan_distance_m of a wall first flagged
-    flag_distance_m ahead: v dt + v^2 / (2 a) <= flag - replan. 0 if there is no room."""
-    room = flag_distance_m - replan_distance_m
+    """Largest speed v from which the vehicle stops (braking at accel_mps2) before it comes
+    within replan_distance_m of a wall first flagged flag_distance_m ahead, as the stop is
+    planned (`speed.clearance_limit`): one cycle of dt_s at v before the wall is seen, then
+    reaction_s at v before braking, and the rest point a further v * reaction_s short (the
+    readings of the approach place the wall that much too far, `speed.rest_margin_m`), and
+    allowance_m short (the vehicle measured ahead of X_d):
+    v (dt + 2 t) + v^2 / (2 a) <= flag - replan - allowance. 0 if there is no room."""
+    room = flag_distance_m - replan_distance_m - max(allowance_m, 0.0)
     if room <= 0.0:
         return 0.0
     a = accel_mps2
-    # v^2 / (2a) + v dt - room = 0
-    return -a * dt_s + math.sqrt((a * dt_s) ** 2 + 2.0 * a * room)
+    lag = dt_s + 2.0 * max(reaction_s, 0.0)
+    # v^2 / (2a) + v lag - room = 0
+    return -a * lag + math.sqrt((a * lag) ** 2 + 2.0 * a * room)

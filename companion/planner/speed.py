@@ -38,6 +38,16 @@ def reacting_speed(distance_m: float, accel_mps2: float, reaction_s: float) -> f
     return a * (math.sqrt(t * t + 2.0 * distance_m / a) - t)
 
 
+def rest_margin_m(cruise_mps: float, reaction_s: float) -> float:
+    """How far short of the re-plan distance X_d comes to rest before an obstacle, metres:
+    the distance flown at the cruise speed in the reaction time. Readings that arrive late
+    place the obstacle that much too far while the vehicle approaches at cruise speed, and
+    by the time the vehicle has slowed and the readings have caught up, X_d has stopped:
+    the vehicle's overshoot of a decelerating setpoint then ends inside the band unless the
+    rest point itself is short of it. 0 with reaction_s 0 (the paper's ideal stop)."""
+    return max(cruise_mps, 0.0) * max(reaction_s, 0.0)
+
+
 def next_stop(stops: Sequence[float], s_m: float) -> float | None:
     """The first stop (arc length on the path: a cusp, the end of a retreat) ahead of s_m."""
     for stop in stops:
@@ -66,6 +76,7 @@ def clearance_limit(
     stop_at_band: bool,
     reaction_s: float = 0.0,
     allowance_m: float = 0.0,
+    rest_margin_m: float = 0.0,
 ) -> float:
     """The speed from which X_d stops _STOP_SHORT_M before the first look-ahead sample
     (arc lengths look_s, clearances clearance_m) closer than the re-plan distance; inf if none.
@@ -73,6 +84,8 @@ def clearance_limit(
     reaction_s: the stop is planned as if the vehicle kept its speed that long before braking
     (late readings, a position controller that trails its setpoint), so it brakes v t earlier.
     allowance_m: a further distance short of it (the vehicle measured ahead of X_d).
+    rest_margin_m: and a further one for where X_d comes to rest (`rest_margin_m`), when
+    stop_at_band (a blocked planner's stop).
 
     stop_at_band: the planner is blocked or still searching, so it stops before the band
     even when already inside it. Otherwise a path that leads out of the band (an accepted
@@ -85,7 +98,14 @@ def clearance_limit(
     too_close = np.flatnonzero(clearance_m < limit)
     if len(too_close) == 0:
         return math.inf
-    free = float(look_s[too_close[0]] - s_m) - _STOP_SHORT_M - max(allowance_m, 0.0)
+    short = _STOP_SHORT_M + max(allowance_m, 0.0)
+    if stop_at_band:
+        # The rest margin is for the stop of a blocked planner. On a path that is flown
+        # (a retreat along the covered track, a correction leaving the band) a place a
+        # little closer than the trigger ahead is passed through as before: with the margin
+        # X_d would rest short of it for good, neither blocked nor moving.
+        short += max(rest_margin_m, 0.0)
+    free = float(look_s[too_close[0]] - s_m) - short
     if reaction_s <= 0.0:
         return braking_speed(free, accel_mps2)
     return reacting_speed(free, accel_mps2, reaction_s)

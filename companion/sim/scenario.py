@@ -41,6 +41,7 @@ class Expectation(BaseModel):
     passes: obstacle feature name -> "left" / "right" (side the vehicle passes it on).
     unchanged_over: feature names over which the horizontal path must stay on the route
     (max lateral deviation below max_lateral_deviation_over_m).
+    max_replans: at most this many re-plans (cycles that took a new path) in the flight.
     known_issue: set when the scenario reproduces a defect not fixed yet: the expectations
     are what must hold once it is; tests/test_scenarios.py reports the scenario as an
     expected failure with this text (and as XPASS the day it holds).
@@ -59,6 +60,7 @@ class Expectation(BaseModel):
     max_lateral_deviation_over_m: Finite = 0.05
     min_decisions: dict[str, int] = Field(default_factory=dict)
     collisions: int | None = 0
+    max_replans: int | None = Field(default=None, ge=0)
     known_issue: str | None = None
 
 

@@ -36,6 +36,7 @@ from companion.planner.sensors import (
 )
 from companion.planner.types import FloatArray, VehicleState
 from companion.sim.mavlink.models import RangeWorld
+from companion.sim.sensing import SensorFan
 
 UINT16_MAX = 65535
 ARDUPILOT_OUT_OF_RANGE_ADD_CM = 100
@@ -69,6 +70,7 @@ class Rangefinders:
         self.min_m = np.array([s.min_range_m for s in self.specs])
         self.max_m = np.array([s.max_range_m for s in self.specs])
         self.cast_range_m = self.max_m * 1.01  # beyond max is out of range anyway
+        self.fan = SensorFan(self.boresights_flu, np.array([s.fov_rad for s in self.specs]))
         self.wire = tuple(self._wire(i, s, with_quaternion) for i, s in enumerate(self.specs))
 
     def _wire(self, index: int, spec: SensorSpec, with_quaternion: bool) -> SensorWire:
@@ -92,12 +94,8 @@ class Rangefinders:
         if not self.specs:
             return np.zeros(0)
         rot = r_g(state.roll_rad, state.pitch_rad, state.yaw_rad)
-        directions = self.boresights_flu @ rot.T
-        origins = np.broadcast_to(state.position_enu, directions.shape).copy()
-        ranges = np.asarray(
-            self.world.raycast(origins, directions, self.cast_range_m), dtype=np.float64
-        )
-        return ranges.reshape(len(self.specs))
+        ranges = self.fan.ranges(self.world.raycast, state.position_enu, rot, self.cast_range_m)
+        return np.asarray(ranges, dtype=np.float64).reshape(len(self.specs))
 
     def current_cm(self, index: int, range_m: float) -> int:
         """current_distance for a reading, with the family's out-of-range convention."""

@@ -1,0 +1,59 @@
+"""A correction accepted inside the re-plan band leads out of it and is flown, not re-planned
+every cycle (the churn the three-pillars-horizontal scenario showed: 61 re-plans for 3)."""
+
+import numpy as np
+import pytest
+
+from companion.planner import Planner, PlannerParams, Route, VehicleState
+from tests.test_planner import SENSORS, flat_ranges
+
+
+def _beside_a_wall(gap_m: float) -> Planner:
+    """X_d at rest at the origin, route along +x, a remembered wall parallel to it gap_m to
+    the left (x from -10 to 30 m): inside the band D_min + margin/2 = 2.3 m."""
+    route = Route(np.array([[0.0, 0.0], [60.0, 0.0]]), 0.0, 0.0)
+    planner = Planner(PlannerParams(), SENSORS, route, np.array([0.0, 0.0, 2.0]))
+    x = np.arange(-10.0, 30.0, 0.2)
+    wall = np.column_stack([x, np.full_like(x, gap_m), np.full_like(x, 2.0)])
+    planner._memory.add(wall, 0)
+    return planner
+
+
+def _fly(planner: Planner, cycles: int) -> tuple[int, float]:
+    """Re-plans over the cycles, and the least distance of X_d to the wall's line."""
+    state = VehicleState(np.array([0.0, 0.0, 2.0]), 0.0, 0.0, 0.0)
+    replans, least = 0, np.inf
+    for _ in range(cycles):
+        res = planner.step(state, flat_ranges(2.0), 0.05)
+        replans += res.diagnostics.replanned
+        p = np.array(res.setpoint.position_enu)
+        least = min(least, 2.0 - float(p[1]))
+        state = VehicleState(p, 0.0, 0.0, res.setpoint.yaw_rad)
+    return replans, least
+
+
+def test_an_escape_is_planned_once(monkeypatch: pytest.MonkeyPatch) -> None:
+    # The wall lives only in the memory; the rays, which read "nothing", would carve it.
+    monkeypatch.setattr(Planner, "_carve", lambda self, *args: None)
+    planner = _beside_a_wall(2.0)
+    replans, least = _fly(planner, 400)
+    assert planner.path.end[0] == pytest.approx(60.0)
+    assert planner._xd_prev[0] > 10.0  # it flew on
+    assert least >= 0.0  # never towards the wall
+    assert replans <= 2, f"re-planned {replans} times"
+
+
+def test_a_point_seen_closer_on_the_escape_is_a_conflict_again(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    monkeypatch.setattr(Planner, "_carve", lambda self, *args: None)
+    planner = _beside_a_wall(2.0)
+    _fly(planner, 2)
+    assert planner._escape is not None
+    s, _ = planner._escape
+    look = planner._look_ahead()
+    # as accepted: no conflict on the stretch
+    assert not (~planner._escape_exempt(look.s, look.clearance) & (look.s <= s[-1])).any()
+    # 0.3 m closer than accepted: a conflict
+    closer = look.clearance - 0.3
+    assert not planner._escape_exempt(look.s, closer)[look.s <= s[-1]].any()
