@@ -245,7 +245,8 @@ class FailsafeConfig(Section):
 
     A range reading older than sensor_max_age_s (or an attitude older than its age) makes
     the service hold at the current position and say why; a position older than
-    position_max_age_s stops commanding altogether (the autopilot keeps its last target).
+    position_max_age_s stops commanding anything new (the last target is sent again at rest
+    for 3 s, a brake, then nothing; the autopilot keeps that target).
     optional_sensor_ids: sensors whose absence is passed to the planner as "no reading"
     instead of causing a hold.
     resume_after_s: inputs must be good this long before a hold ends.

@@ -63,8 +63,8 @@ def check_behaviour(o: FlightOutcome) -> None:
         # the planner's frame moved with the jump: the plan, and the goal, stay in the world
     if name == "dup_reorder":
         assert c.get("input.duplicate", 0) + c.get("input.out_of_order", 0) > 0
-    if name == "link_cut_3s":  # stop commanding (nothing sent), then resume
-        assert o.kinds_between(t0 + 0.6, t0 + 3.0) == {None}
+    if name == "link_cut_3s":  # stop commanding (nothing new: the brake), then resume
+        assert o.kinds_between(t0 + 0.6, t0 + 3.0) == {"brake"}
         assert {x.verdict for x in o.cycles_between(t0 + 0.6, t0 + 3.0)} == {"stop"}
         assert "planner" in o.kinds_between(t0 + 3.0, t0 + 6.0)
     if name in ("reboot", "mode_change"):  # released for good: the pilot's (or failsafe's)

@@ -361,13 +361,18 @@ async def test_position_jump_over_the_limit_stops_and_is_never_accepted() -> Non
         await asyncio.sleep(1.0)
         n = len(ap.setpoints())
         await asyncio.sleep(0.5)
-        assert len(ap.setpoints()) == n  # stopped commanding
+        # stopped commanding: nothing new, only the brake (the last target again, at rest)
+        during = [s.msg for s in ap.setpoints()[n:]]
+        assert all((m.vx, m.vy, m.vz) == (0.0, 0.0, 0.0) for m in during)
+        assert len({(m.lat_int, m.lon_int, m.alt) for m in during}) <= 1
         assert not svc.status().shift_enu.any()  # the plan was not re-based on it
         assert svc.counter_values().get("input.position_jump_accepted", 0) == 0
         assert svc.status().health is Health.EMERGENCY and not task.done()
         assert any("position jump of 1000 m over the 50 m limit" in t for t in pilot_texts(ap))
         ap.alt_amsl -= 1000.0  # the estimate comes back: flying resumes
-        await ap.wait_for(lambda: len(ap.setpoints()) >= n + 5, 5.0)
+        await until(lambda: svc.status().health is Health.ACTIVE, 5.0)
+        m = len(ap.setpoints())
+        await ap.wait_for(lambda: len(ap.setpoints()) >= m + 5, 5.0)
 
 
 async def test_position_jump_within_the_limit_is_still_accepted() -> None:

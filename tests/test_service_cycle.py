@@ -17,7 +17,7 @@ import pytest
 from companion.service.autopilot import AutopilotInfo
 from companion.service.clock import ManualClock
 from companion.service.codec import MavCodec
-from companion.service.cycle import ControlCycle
+from companion.service.cycle import STOP_BRAKE_S, ControlCycle
 from companion.service.failsafe import Limits, Verdict
 from companion.service.host import PlannerHost
 from companion.service.identity import Health
@@ -214,19 +214,48 @@ def test_a_stale_sensor_holds_and_good_inputs_resume_after_resume_after_s() -> N
     assert r.cycle.last_kind == "planner" and r.cycle.health is Health.ACTIVE
 
 
-def test_the_position_going_stale_stops_commanding() -> None:
-    r = rig()
-    r.ap.custom_mode = GUIDED
-    r.run(0.5)
-    n = len(r.setpoints())
-    for _ in range(20):  # heartbeats only
+def _heartbeats_only(r: Rig, seconds: float) -> None:
+    for _ in range(round(seconds / PERIOD_S)):
         r.clock.advance(PERIOD_S)
         r.ap.heartbeat()
         r.cycle.tick(r.clock.now())
+
+
+def test_the_position_going_stale_brakes_at_the_last_target_then_stops_commanding() -> None:
+    """STOP sends no new target: the last one, at rest, for STOP_BRAKE_S (the autopilot would
+    otherwise run on along its velocity), then nothing."""
+    r = rig()
+    r.ap.custom_mode = GUIDED
+    r.run(0.5)
+    moving = r.setpoints()[-1]
+    assert (moving.vx, moving.vy) != (0.0, 0.0)  # the planner was flying
+    n = len(r.setpoints())
+    _heartbeats_only(r, 1.0)
     assert r.cycle.last_verdict.verdict is Verdict.STOP
-    assert r.cycle.health is Health.EMERGENCY
-    # position_max_age_s (0.5 s) of setpoints at most, then silence
-    assert n < len(r.setpoints()) <= n + 10
+    assert r.cycle.health is Health.EMERGENCY and r.cycle.last_kind == "brake"
+    after = r.setpoints()[n:]
+    # position_max_age_s (0.5 s) of planner setpoints, then the brake: the last target, at rest
+    kinds = [(m.vx, m.vy, m.vz) == (0.0, 0.0, 0.0) for m in after]
+    first_brake = kinds.index(True)
+    assert all(kinds[first_brake:]) and first_brake <= 10
+    last_planner = after[first_brake - 1] if first_brake else moving
+    brakes = after[first_brake:]
+    assert {(m.lat_int, m.lon_int, m.alt) for m in brakes} == {
+        (last_planner.lat_int, last_planner.lon_int, last_planner.alt)
+    }
+    assert brakes[0].yaw == last_planner.yaw
+    _heartbeats_only(r, STOP_BRAKE_S)
+    m = len(r.setpoints())
+    _heartbeats_only(r, 1.0)
+    assert len(r.setpoints()) == m  # after STOP_BRAKE_S: silence
+    assert r.counters["brake_cycles"] == pytest.approx(STOP_BRAKE_S / PERIOD_S, abs=2)
+
+
+def test_no_brake_when_nothing_was_commanded() -> None:
+    r = rig()
+    r.run(0.5)  # LOITER: never engaged
+    _heartbeats_only(r, 1.0)
+    assert r.setpoints() == [] and r.counters["brake_cycles"] == 0
 
 
 def test_a_mode_change_releases_at_once_and_for_good() -> None:

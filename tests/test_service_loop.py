@@ -175,12 +175,16 @@ async def test_heartbeat_loss_stops_commanding_and_recovers() -> None:
         await until(lambda: svc.status().health is Health.EMERGENCY, 2.0)
         n = len(ap.setpoints())
         await asyncio.sleep(0.3)
-        assert len(ap.setpoints()) == n
+        # nothing new is commanded: only the brake, the last target again at rest
+        during = [s.msg for s in ap.setpoints()[n:]]
+        assert all((m.vx, m.vy, m.vz) == (0.0, 0.0, 0.0) for m in during)
+        assert len({(m.lat_int, m.lon_int, m.alt) for m in during}) <= 1
         intervals_before = sum(1 for c in ap.commands if int(c.command) == 511)
         ap.heartbeat_enabled = True
         ap.telemetry_enabled = True
-        await ap.wait_for(lambda: len(ap.setpoints()) > n + 3, 3.0)
-        assert svc.status().health is Health.ACTIVE
+        await until(lambda: svc.status().health is Health.ACTIVE, 3.0)
+        m = len(ap.setpoints())
+        await ap.wait_for(lambda: len(ap.setpoints()) > m + 3, 3.0)
         # the autopilot might have rebooted: message rates are requested again
         await ap.wait_for(
             lambda: sum(1 for c in ap.commands if int(c.command) == 511) > intervals_before
@@ -224,7 +228,10 @@ async def test_stale_position_stops_commanding() -> None:
         await until(lambda: svc.status().health is Health.EMERGENCY, 2.0)
         n = len(ap.setpoints())
         await asyncio.sleep(0.3)
-        assert len(ap.setpoints()) == n
+        # nothing new is commanded: only the brake, the last target again at rest
+        during = [s.msg for s in ap.setpoints()[n:]]
+        assert all((m.vx, m.vy, m.vz) == (0.0, 0.0, 0.0) for m in during)
+        assert len({(m.lat_int, m.lon_int, m.alt) for m in during}) <= 1
         assert svc.status().verdict.reason == "position stale"
 
 

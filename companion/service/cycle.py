@@ -14,6 +14,8 @@ import logging
 from collections import Counter
 from typing import Any, Protocol
 
+import numpy as np
+
 from companion.config import ServiceConfig
 from companion.planner.types import Setpoint, StepResult
 from companion.service.autopilot import AutopilotInfo
@@ -29,6 +31,13 @@ from companion.service.statustext import Severity, StatusTexts, statustext_messa
 from companion.service.telemetry import Telemetry
 
 log = logging.getLogger("companion.service")
+
+STOP_BRAKE_S = 3.0
+"""How long, from the start of a STOP, the cycle keeps sending a brake setpoint: the last
+setpoint's position with zero velocity. A STOP means the service cannot trust its inputs, so
+it commands nothing new; but the autopilot keeps flying the last position-and-velocity
+target (ArduCopter advances the target by its velocity for up to GUID_TIMEOUT, 3 s), and the
+brake needs no input at all. After it, silence: the autopilot's own failsafes take over."""
 
 
 class Outbox(Protocol):
@@ -107,6 +116,8 @@ class ControlCycle:
         """The planner's decision in the last cycle it ran (None before it has run)."""
         self.last_cycle_wall: float | None = None
         self._text_id = 0
+        self._stop_since: float | None = None
+        """Service time the current STOP began while commanding (None when not stopped)."""
 
     def say(self, now: float, text: str, severity: Severity = Severity.INFO) -> None:
         self.texts.post(now, text, severity)
@@ -164,12 +175,18 @@ class ControlCycle:
                 host.pause()
             else:
                 host.pause()
+                sp = self._brake_setpoint(now)
+                if sp is not None:
+                    sp_kind = "brake"
+                    self.counters["brake_cycles"] += 1
             if sp_kind == "hold":
                 self.counters["hold_cycles"] += 1
         elif priming and verdict.verdict is not Verdict.STOP:
             sp, sp_kind = host.hold_setpoint(), "prime"
         if verdict.verdict is Verdict.RUN and sp_kind != "hold":
             host.clear_hold()
+        if verdict.verdict is not Verdict.STOP or not self.ownership.engaged:
+            self._stop_since = None
         if sp is not None:
             self.send_setpoint(sp, now)
         self.health = self._health(verdict.verdict, priming)
@@ -180,6 +197,16 @@ class ControlCycle:
         self.send_texts(now)
         if self.flight_log is not None:
             self.flight_log.write(self._record(now, verdict, result, sp, sp_kind, events))
+
+    def _brake_setpoint(self, now: float) -> Setpoint | None:
+        """The brake of a STOP (see STOP_BRAKE_S): the last setpoint sent, at rest; None once
+        STOP_BRAKE_S has passed, or if nothing was ever sent."""
+        if self._stop_since is None:
+            self._stop_since = now
+        last = self.host.last_setpoint
+        if last is None or now - self._stop_since > STOP_BRAKE_S:
+            return None
+        return Setpoint(last.position_enu, np.zeros(3), last.yaw_rad, 0.0)
 
     def hold_reason(self) -> str:
         """Why the vehicle holds (or is not commanded) now; "" when the planner flies it."""

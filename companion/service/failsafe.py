@@ -4,8 +4,9 @@
     HOLD   a required range sensor or the attitude is stale: send a position setpoint at the
            position where the hold began, zero velocity (the planner is not stepped)
     STOP   the autopilot heartbeat, home or position is missing or stale, or the position
-           jumped and is being judged: send nothing (the autopilot keeps its last position
-           target; its own failsafes take over)
+           jumped and is being judged: command nothing new. For `cycle.STOP_BRAKE_S` the last
+           target is sent again at rest (a brake that needs no input), then nothing: the
+           autopilot keeps that target and its own failsafes take over
 
 `Failsafe` adds hysteresis: a hold or stop ends only after the inputs have been good for
 `resume_after_s`, and each change of verdict or reason yields one message for the pilot.
