@@ -153,8 +153,9 @@ def assert_flight(flight: SitlFlight) -> None:
 WIRED_STOP = (
     "the planner's stop keeps a margin now (X_d rests v t short of the trigger: 2.49 m in a "
     "run with four flights side by side), but on a loaded machine the service can starve: "
-    "position went stale for 1.1 s, the failsafe's STOP sent nothing, and ArduCopter flew on "
-    "its last position+velocity target 1.3 m past X_d (1.686 m); another loaded run 0.925 m"
+    "position went stale for 1.1 s, the failsafe's STOP sent nothing then, and ArduCopter flew "
+    "on its last position+velocity target 1.3 m past X_d (1.686 m; a STOP brakes since); "
+    "another loaded run 0.925 m, cause not found"
 )
 
 
