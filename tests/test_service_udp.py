@@ -96,9 +96,14 @@ async def test_udp_heartbeat_loss_and_recovery() -> None:
         await until(lambda: svc.status().health is Health.EMERGENCY, 2.0)
         n = len(ap.setpoints())
         await asyncio.sleep(0.3)
-        assert len(ap.setpoints()) == n
+        # nothing new is commanded: only the brake, the last target again at rest
+        during = [s.msg for s in ap.setpoints()[n:]]
+        assert all((m.vx, m.vy, m.vz) == (0.0, 0.0, 0.0) for m in during)
+        assert len({(m.lat_int, m.lon_int, m.alt) for m in during}) <= 1
         ap.heartbeat_enabled = ap.telemetry_enabled = True
-        await ap.wait_for(lambda: len(ap.setpoints()) > n + 3, 3.0)
+        await until(lambda: svc.status().health is Health.ACTIVE, 3.0)
+        m = len(ap.setpoints())
+        await ap.wait_for(lambda: len(ap.setpoints()) > m + 3, 3.0)
 
 
 async def test_udp_garbage_oversized_and_foreign_datagrams() -> None:
