@@ -1,4 +1,4 @@
-"""Metrics of a run, as the paper reports them (PAPER_NOTES, "Metrics").
+"""Metrics of a run, as the paper reports them (docs/paper.md, "Metrics").
 
 - min_clearance_m: min over the run of the true shortest distance from the vehicle to any
   obstacle feature (features with obstacle: true).

@@ -18,7 +18,7 @@ def steepness(
 
     obstacle_points: X_di, (m, 3) world ENU. ground_points: the paired surface point X_hj of
     each sensor's group, (m, 3) (left group with the left point, forward with forward, right
-    with right; PAPER_NOTES). detected: (m,) bool; phi_i* = 0 where d_i = 0 (nothing seen).
+    with right; docs/paper.md). detected: (m,) bool; phi_i* = 0 where d_i = 0 (nothing seen).
     """
     rel = obstacle_points - ground_points
     horizontal = np.hypot(rel[:, 0], rel[:, 1])

@@ -93,7 +93,7 @@ SURFACE_GROUPS = (
     Group.SURFACE_LEFT,
     Group.SURFACE_RIGHT,
 )
-# Eq. (6) pairing as PAPER_NOTES reads it: L with the left point, F forward, R right.
+# Eq. (6) pairing as docs/paper.md reads it: L with the left point, F forward, R right.
 SURFACE_FOR_GROUP = {
     Group.LEFT: Group.SURFACE_LEFT,
     Group.FORWARD: Group.SURFACE_FORWARD,

@@ -19,7 +19,7 @@ def aim_point(x_h1: FloatArray, x_h2: FloatArray, yaw_rad: float, h_d_m: float) 
 
     X_h1/X_h2: ground points of the forward and backward surface sensors. R_psi turns the
     fore-aft ground direction up by pi/2; the result is normalised after rotating because
-    roll or side-slip take (X_h1 - X_h2) out of the heading's vertical plane (PAPER_NOTES).
+    roll or side-slip take (X_h1 - X_h2) out of the heading's vertical plane (docs/paper.md).
     Scalar arithmetic (a per-cycle path): R_psi is `rotations.r_psi` written out.
     """
     x1, y1, z1 = np.asarray(x_h1, dtype=np.float64).tolist()
