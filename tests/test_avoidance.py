@@ -8,12 +8,14 @@ import pytest
 
 from companion.planner.avoidance import (
     AvoidanceRequest,
+    _start_direction,
     free_intervals,
     max_abs_curvature,
     min_distance,
     plan_detour,
     sample_segments,
 )
+from companion.planner.bezier import segment_through
 from companion.planner.params import PlannerParams
 from companion.planner.route import Route
 from companion.planner.types import PathMode, Side
@@ -137,3 +139,79 @@ def test_inflated_points_are_passed_farther_out() -> None:
     assert float(min_distance(np.array([[0.0, 0.0]]), wall, infl)[0]) == (
         float(min_distance(np.array([[0.0, 0.0]]), wall)[0]) - 1.0
     )
+
+
+def _nearest_to(detour_path_points: np.ndarray, point: np.ndarray) -> float:
+    return float(np.min(np.hypot(*(detour_path_points - point).T)))
+
+
+def test_a_base_point_close_behind_an_obstacle_is_reached_from_another_direction() -> None:
+    """The base point 7 m behind the wall is too close for the return S-curve to meet the
+    route before it along the route's tangent; the correction passes through it at an angle
+    and rejoins the route after it, keeping D_m and the turn radius."""
+    route = Route(np.array([[0.0, 0.0], [27.0, 0.0], [60.0, 0.0]]), 0.0, 0.0)
+    pts = wall(20.0, -3.0, 1.0)
+    detour = plan_detour(route, request(pts), PARAMS)
+    assert detour is not None
+    assert detour.rejoin_s > route.base_s[1] + 1.0  # rejoins after the base point...
+    poly = detour.path.polyline(0.05)
+    assert _nearest_to(poly.points, route.base_points[1]) < 0.05  # ...having passed through it
+    segs = list(detour.path.segments)
+    assert max_abs_curvature(segs) <= 1.0 / PARAMS.min_turn_radius_m * 1.001
+    for a, b in itertools.pairwise(segs):
+        np.testing.assert_allclose(a.tangent(1.0), b.tangent(0.0), atol=1e-6)
+    assert float(min_distance(sample_segments(segs), pts).min()) >= D_M - 0.05 - 1e-9
+
+
+def test_passing_a_base_point_through_costs_less_than_passing_beside_it() -> None:
+    """Of the corrections that exist, one through the base point wins over one that holds
+    its offset past it (skipping it), though the skip is shorter."""
+    route = Route(np.array([[0.0, 0.0], [28.0, 0.0], [60.0, 0.0]]), 0.0, 0.0)
+    detour = plan_detour(route, request(wall(20.0, -3.0, 1.0)), PARAMS)
+    assert detour is not None
+    assert _nearest_to(detour.path.polyline(0.05).points, route.base_points[1]) < 0.05
+
+
+def test_the_goal_is_reached_along_the_arrival_heading_asked_for() -> None:
+    """A goal just behind an obstacle: with no arrival heading asked for, a correction may
+    arrive from another direction; with one, it never does (here: no correction)."""
+    pts = wall(20.0, -3.0, 1.0)
+    free = Route(np.array([[0.0, 0.0], [27.0, 0.0]]), 0.0, None)
+    asked = Route(np.array([[0.0, 0.0], [27.0, 0.0]]), 0.0, 0.0)
+    for route in (free, asked):
+        detour = plan_detour(route, request(pts), PARAMS)
+        if detour is None:
+            continue
+        end = detour.path.segments[-1]
+        np.testing.assert_allclose(end.evaluate(1.0), [27.0, 0.0], atol=1e-9)
+        if route is asked:
+            np.testing.assert_allclose(end.tangent(1.0), [1.0, 0.0], atol=1e-6)
+    assert plan_detour(free, request(pts), PARAMS) is not None
+
+
+def test_a_passage_narrower_than_two_d_m_is_passed_at_the_replan_distance() -> None:
+    """Two long walls leave a 5 m gap: too narrow to keep D_min + margin (2.6 m) from both,
+    wide enough for the re-plan distance D_min + margin / 2 (2.3 m). The correction goes
+    through it, keeping at least that."""
+    pts = np.vstack([wall(20.0, -45.0, 1.5), wall(20.0, 6.5, 45.0)])
+    detour = plan_detour(ROUTE, request(pts), PARAMS)
+    assert detour is not None
+    assert 3.5 < detour.offset_m < 4.5
+    trigger = PARAMS.d_min_m + 0.5 * PARAMS.clearance_margin_m
+    clearance = float(min_distance(sample_segments(list(detour.path.segments)), pts).min())
+    assert trigger <= clearance < D_M
+
+
+def test_from_rest_the_first_segment_leaves_in_the_least_curving_direction() -> None:
+    """At rest the vehicle may turn on the spot: to reach a point 2 m ahead and 2 m to the
+    left along the route's heading it leaves to the left, on a quarter circle (curvature
+    near 1/2), where leaving along the chord would curve twice as much."""
+    start, target, heading = np.zeros(2), np.array([2.0, 2.0]), np.array([1.0, 0.0])
+    leaving = _start_direction(start, target, heading)
+    assert leaving is not None
+    direction, handle = leaving
+    np.testing.assert_allclose(direction, [0.0, 1.0], atol=1e-9)
+    arc = segment_through(start, direction, target, heading, handle, handle)
+    chord = segment_through(start, np.array([1.0, 1.0]) / math.sqrt(2.0), target, heading)
+    assert max_abs_curvature([arc]) < 0.52
+    assert max_abs_curvature([chord]) > 2.0 * max_abs_curvature([arc]) * 0.9

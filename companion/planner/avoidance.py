@@ -56,6 +56,15 @@ KEEP_ROUTE_FACTOR = 2.0
 """Lengths, in multiples of the shortest S-curve the turn radius allows, over which a
 candidate moves to its offset."""
 _SAMPLE_SPACING_M = 0.2
+SKIP_BASE_COST_M = 30.0
+"""Extra cost per base point a candidate passes beside instead of through: tried after the
+candidates that pass through it, from the route's direction or another one."""
+NARROW_COST_M = 200.0
+"""Extra cost of a candidate that keeps only the re-plan trigger, not D_min + margin: tried
+after every candidate that keeps the margin (see `detour_search`)."""
+THROUGH_BASE_COST_M = 20.0
+"""Extra cost of a candidate that reaches a base point from another direction than the
+route's (see `_with_transitions`)."""
 ESCAPE_SLOPE = 0.3
 """A correction that starts closer than D_min (new points appeared beside the vehicle) must
 gain at least this much clearance per metre along it until it is out."""
@@ -241,49 +250,43 @@ def detour_search(
             break
         s_a, s_b, lat_limit = min(s_a, new_a), max(s_b, new_b), new_limit
     if window.any():
-        l_window, half_window = l_obs[window], d_m + 0.05 + inflation[window]
+        l_window, infl_window = l_obs[window], inflation[window]
     else:
-        l_window, half_window = l_seed, np.full(len(l_seed), d_m + 0.05)
+        l_window, infl_window = l_seed, np.zeros(len(l_seed))
 
     start_clear = float(min_distance(request.start_xy[None, :], obstacles, inflation)[0])
-    required = min(d_m - 0.05, max(params.d_min_m, start_clear - 0.05))
-    start_floor = start_clear - 0.05 if start_clear - 0.05 < required else None
     seed_mid = float(np.median(l_seed))
     across = float(np.min(np.abs(l_seed - l0))) < ACROSS_M
     mode = PathMode.AROUND if across else PathMode.SHIFT
+    on_route = abs(l0) < 0.05 and request.start_dir is not None
 
-    candidates: list[tuple[float, float, Side]] = []
-    for lo, hi in free_intervals(l_window, half_window):
-        offsets: list[tuple[float, float]] = []  # (w, cost adjustment)
-        for target in (l0, 0.0):
-            w = min(max(target, lo + 1e-3), hi - 1e-3)
-            offsets.append((w, 0.0))
-            if mode is PathMode.AROUND:
-                # Seen from the front, an obstacle's far extent is unknown: prefer a berth.
-                berth = w + UNSEEN_BERTH_M if w <= lo + 1e-2 else w - UNSEEN_BERTH_M
-                if lo < berth < hi and (w <= lo + 1e-2 or w >= hi - 1e-2):
-                    offsets.append((berth, -1.6 * UNSEEN_BERTH_M - 0.1))
-        for w, adjust in offsets:
-            side = Side.LEFT if w > seed_mid else Side.RIGHT
-            cost = abs(w - l0) + 0.5 * abs(w) + adjust
-            if request.committed_side is not Side.NONE and side is not request.committed_side:
-                cost += SIDE_SWITCH_PENALTY_M
-            if side is request.avoid_side:
-                cost += DEAD_END_PENALTY_M
-            less_free = Side.LEFT if request.free_left_m < request.free_right_m else Side.RIGHT
-            if request.free_left_m != request.free_right_m and side is less_free:
-                cost += LESS_FREE_SIDE_PENALTY_M
-            if not any(abs(w - c[1]) < 1e-6 for c in candidates):
-                candidates.append((cost, w, side))
-    candidates.sort(key=lambda c: (c[0], c[1]))
+    # Every offset and transition keeping D_m, cheapest first; then, where the margin leaves
+    # room, the same keeping only the re-plan trigger (D_min + margin / 2) plus a little: a
+    # passage narrower than 2 D_m is still one to pass. Paths at the trigger are not in
+    # conflict with it, so the re-plan does not come back every cycle.
+    narrow_m = params.d_min_m + 0.5 * params.clearance_margin_m + 0.05
+    options: list[tuple[float, float, Side, float | None, float, bool, float]] = []
+    for keep_m, extra in ((d_m, 0.0), (narrow_m, NARROW_COST_M)):
+        if extra > 0.0 and d_m - keep_m < 0.1:
+            break
+        candidates = _offsets(
+            free_intervals(l_window, keep_m + 0.05 + infl_window), l0, mode, seed_mid, request
+        )
+        options += [
+            (cost + extra, w, side, leave, at, through, keep_m)
+            for cost, w, side, leave, at, through in _with_transitions(
+                candidates, l0, s0, s_a, s_b, keep_m, params, on_route, route
+            )
+        ]
 
     tails: dict[float, list[CubicBezier]] = {}  # the route after each rejoin point tried
-    on_route = abs(l0) < 0.05 and request.start_dir is not None
     yield
-    for cost, w, side, leave, transition in _with_transitions(
-        candidates, l0, s0, s_a, d_m, params, on_route
-    ):
-        built = _build(route, poly, request, params, s0, leave, transition, s_b, w, d_m, tails)
+    for cost, w, side, leave, transition, through_base, keep_m in options:
+        required = min(keep_m - 0.05, max(params.d_min_m, start_clear - 0.05))
+        start_floor = start_clear - 0.05 if start_clear - 0.05 < required else None
+        built = _build(
+            route, poly, request, params, s0, leave, transition, s_b, w, keep_m, tails, through_base
+        )
         if built is None:
             yield
             continue
@@ -315,6 +318,43 @@ def detour_search(
     return None
 
 
+def _offsets(
+    gaps: list[tuple[float, float]],
+    l0: float,
+    mode: PathMode,
+    seed_mid: float,
+    request: AvoidanceRequest,
+) -> list[tuple[float, float, Side]]:
+    """Candidate offsets (cost, w, side), cheapest first: per gap between the blocked bands,
+    the offset nearest the current one (l0) and the one nearest the route, and around an
+    obstacle across the path each with an extra berth (see the module docstring)."""
+    candidates: list[tuple[float, float, Side]] = []
+    for lo, hi in gaps:
+        offsets: list[tuple[float, float]] = []  # (w, cost adjustment)
+        for target in (l0, 0.0):
+            w = min(max(target, lo + 1e-3), hi - 1e-3)
+            offsets.append((w, 0.0))
+            if mode is PathMode.AROUND:
+                # Seen from the front, an obstacle's far extent is unknown: prefer a berth.
+                berth = w + UNSEEN_BERTH_M if w <= lo + 1e-2 else w - UNSEEN_BERTH_M
+                if lo < berth < hi and (w <= lo + 1e-2 or w >= hi - 1e-2):
+                    offsets.append((berth, -1.6 * UNSEEN_BERTH_M - 0.1))
+        for w, adjust in offsets:
+            side = Side.LEFT if w > seed_mid else Side.RIGHT
+            cost = abs(w - l0) + 0.5 * abs(w) + adjust
+            if request.committed_side is not Side.NONE and side is not request.committed_side:
+                cost += SIDE_SWITCH_PENALTY_M
+            if side is request.avoid_side:
+                cost += DEAD_END_PENALTY_M
+            less_free = Side.LEFT if request.free_left_m < request.free_right_m else Side.RIGHT
+            if request.free_left_m != request.free_right_m and side is less_free:
+                cost += LESS_FREE_SIDE_PENALTY_M
+            if not any(abs(w - c[1]) < 1e-6 for c in candidates):
+                candidates.append((cost, w, side))
+    candidates.sort(key=lambda c: (c[0], c[1]))
+    return candidates
+
+
 def _comes_closer(
     segments: list[CubicBezier],
     obstacles_xy: FloatArray,
@@ -344,22 +384,52 @@ def _comes_closer(
     return False
 
 
+def _hold_and_rejoin(
+    route: Route, params: PlannerParams, hold_start: float, s_b: float, w: float, d_m: float
+) -> tuple[float, float, float | None]:
+    """Where a candidate at offset w stops holding it (route arc length, m), where it would
+    like to be back on the route (a return S-curve later), and the arc length of the base
+    point that cuts that return short (None: none does; the route's end counts as one)."""
+    hold_end = max(s_b + d_m, hold_start + params.min_turn_radius_m)
+    ret = max(
+        1.3 * math.sqrt(6.0 * abs(w) * params.min_turn_radius_m),
+        2.0 * params.min_turn_radius_m,
+        4.0,
+    )
+    next_base = route.base_s[route.base_s > hold_end + 1e-6]
+    limit = float(next_base[0]) if len(next_base) else route.length
+    return hold_end, hold_end + ret, limit if hold_end + ret > limit else None
+
+
+def _skipped(route: Route, leave_s: float, hold_end: float) -> int:
+    """How many base points a candidate that leaves the route at leave_s and holds its
+    offset to hold_end (route arc lengths, m) passes at that offset instead of through."""
+    return int(np.count_nonzero((route.base_s > leave_s + 0.5) & (route.base_s <= hold_end)))
+
+
 def _with_transitions(
     candidates: list[tuple[float, float, Side]],
     l0: float,
     s0: float,
     s_a: float,
+    s_b: float,
     d_m: float,
     params: PlannerParams,
     on_route: bool,
-) -> list[tuple[float, float, Side, float | None, float]]:
+    route: Route,
+) -> list[tuple[float, float, Side, float | None, float, bool]]:
     """Each candidate offset with the route positions at which it may reach that offset:
     the window's start (s_a - D_m) when that is ahead, else a few lengths ahead of here.
     Later transitions cost a little more (they stay longer on the old line). A vehicle on
     the route first tries to stay on it until KEEP_ROUTE_FACTOR S-curve lengths before
     the offset is reached (the `leave` position; None: leave now): an obstacle seen from
-    afar does not bend the path over terrain long before it."""
-    out: list[tuple[float, float, Side, float | None, float]] = []
+    afar does not bend the path over terrain long before it.
+
+    Where a base point comes before the return to the route is complete, each option is
+    also offered through that base point from another direction (the last flag;
+    THROUGH_BASE_COST_M more): rejoining before it along the route's own tangent can need a
+    sharper S-curve than the turn radius allows."""
+    out: list[tuple[float, float, Side, float | None, float, bool]] = []
     for cost, w, side in candidates:
         # A cubic S-curve shifting sideways by c over a length L curves at about 6 c / L^2.
         shortest = max(1.0, 1.1 * math.sqrt(6.0 * abs(w - l0) * params.min_turn_radius_m))
@@ -371,10 +441,18 @@ def _with_transitions(
         for i, at in enumerate(options):
             if at > s0 + 0.5:
                 leave = at - KEEP_ROUTE_FACTOR * shortest
-                if on_route and i < 3 and leave > s0 + 1.0:
-                    out.append((cost + 0.1 * i - 0.05, w, side, leave, at))
-                out.append((cost + 0.1 * i, w, side, None, at))
-    out.sort(key=lambda c: (c[0], c[1]))
+                hold_end, _, base_cut = _hold_and_rejoin(route, params, at, s_b, w, d_m)
+                for through, extra in ((False, 0.0), (True, THROUGH_BASE_COST_M)):
+                    if through and base_cut is None:
+                        continue
+                    if on_route and i < 3 and leave > s0 + 1.0:
+                        skip = SKIP_BASE_COST_M * _skipped(route, leave, hold_end)
+                        out.append(
+                            (cost + extra + skip + 0.1 * i - 0.05, w, side, leave, at, through)
+                        )
+                    skip = SKIP_BASE_COST_M * _skipped(route, s0, hold_end)
+                    out.append((cost + extra + skip + 0.1 * i, w, side, None, at, through))
+    out.sort(key=lambda c: (c[0], c[1], c[5]))
     return out
 
 
@@ -390,23 +468,35 @@ def _build(
     w: float,
     d_m: float,
     tails: dict[float, list[CubicBezier]],
+    through_base: bool = False,
 ) -> tuple[list[CubicBezier], float, list[CubicBezier]] | None:
     """The Bezier chain of one candidate: reach offset w at route position hold_start, hold
     it to s_b + D_m, then rejoin the route; plus the route tail it rejoins. tails: the
-    route split at rejoin points already tried (candidates share them), filled in here."""
-    hold_end = max(s_b + d_m, hold_start + params.min_turn_radius_m)
-    ret = max(
-        1.3 * math.sqrt(6.0 * abs(w) * params.min_turn_radius_m),
-        2.0 * params.min_turn_radius_m,
-        4.0,
-    )
-    rejoin_s = hold_end + ret
-    # Rejoin no later than the next base point still ahead of the hold, and never past the end.
-    next_base = route.base_s[route.base_s > hold_end + 1e-6]
-    limit = float(next_base[0]) if len(next_base) else route.length
-    rejoin_s = min(rejoin_s, limit)
+    route split at rejoin points already tried (candidates share them), filled in here.
+
+    The return to the route ends no later than the next base point, along the route's
+    tangent there; with through_base it instead passes through that base point along the
+    line from the hold's end to the rejoin point beyond it (Catmull-Rom), and rejoins the
+    route one return length past the base point (or ends there, at the goal)."""
+    hold_end, rejoin_s, base_s = _hold_and_rejoin(route, params, hold_start, s_b, w, d_m)
+    ret = rejoin_s - hold_end
+    if base_s is not None:
+        rejoin_s = base_s
     if rejoin_s <= hold_end + 0.5:
         return None
+    via_base: FloatArray | None = None
+    base_t = np.zeros(2)
+    if through_base:
+        if base_s is None:
+            return None
+        if base_s >= route.length - 1e-9 and route.arrival_heading_given:
+            return None  # the goal is to be reached along the heading asked for
+        base_t = _route_frame(poly, base_s)[1]
+        via_base = route.base_points[int(np.argmin(np.abs(route.base_s - base_s)))]
+        later = route.base_s[route.base_s > base_s + 1e-6]
+        rejoin_s = min(base_s + ret, float(later[0]) if len(later) else base_s)
+        if base_s < rejoin_s <= base_s + 0.5:
+            return None
     via: list[tuple[FloatArray, FloatArray]] = []
     if leave is not None:
         p, t, _ = _route_frame(poly, leave)
@@ -415,19 +505,30 @@ def _build(
         p, t, n = _route_frame(poly, hold_start)
         via.append((p + w * n, t))
     p, t, n = _route_frame(poly, hold_end)
-    via.append((p + w * n, t))
+    hold_p = p + w * n
+    via.append((hold_p, t))
     rejoin_p, rejoin_t, _ = _route_frame(poly, rejoin_s)
+    if via_base is not None:
+        at_end = rejoin_s >= route.length - 1e-9  # the goal: arrive there, from any side
+        base_dir = _base_direction(
+            hold_p, t, via_base, base_t, None if at_end else rejoin_p, rejoin_t
+        )
+        if base_dir is None:
+            return None
+        via.append((via_base, base_dir))
+        if at_end:
+            rejoin_p, rejoin_t = via_base, base_dir
     via.append((rejoin_p, rejoin_t))
 
     start = np.asarray(request.start_xy, dtype=np.float64)
     first_target = via[0][0]
     start_dir = request.start_dir
+    first_handle: float | None = None  # (None: a third of the chord)
     if start_dir is None:
-        chord = first_target - start
-        norm = float(np.hypot(chord[0], chord[1]))
-        if norm < 1e-6:
+        leaving = _start_direction(start, first_target, via[0][1])
+        if leaving is None:
             return None
-        start_dir = chord / norm
+        start_dir, first_handle = leaving
     segments: list[CubicBezier] = []
     cur, cur_dir = start, np.asarray(start_dir, dtype=np.float64)
     for point, direction in via:
@@ -435,7 +536,8 @@ def _build(
             continue
         if float(np.dot(point - cur, cur_dir)) <= 0.0:
             return None  # the next via point is behind us: no smooth way to it
-        segments.append(segment_through(cur, cur_dir, point, direction))
+        handle = first_handle if not segments else None
+        segments.append(segment_through(cur, cur_dir, point, direction, handle))
         cur, cur_dir = point, direction
     if not segments:
         return None
@@ -451,3 +553,72 @@ def _build(
         ctrl[3] = tail[0].control[0]
         segments[-1] = CubicBezier(ctrl)
     return segments, rejoin_s, tail
+
+
+def _unit_or_none(v: FloatArray) -> FloatArray | None:
+    norm = float(np.hypot(v[0], v[1]))
+    return None if norm < 1e-9 else np.asarray(v / norm, dtype=np.float64)
+
+
+def _base_direction(
+    hold_p: FloatArray,
+    hold_t: FloatArray,
+    base_p: FloatArray,
+    route_t: FloatArray,
+    rejoin_p: FloatArray | None,
+    rejoin_t: FloatArray,
+) -> FloatArray | None:
+    """Unit direction in which a correction passes a base point (`_build`'s through_base):
+    of a few directions (the Catmull-Rom line from the hold's end to the rejoin point, the
+    route's tangent at the base point, the hold's tangent mirrored about the chord, and
+    halfway between the first and each of the others), the one whose segments into and out
+    of the base point curve least. rejoin_p None: the base point is the route's end."""
+    chord = _unit_or_none(base_p - hold_p)
+    if chord is None:
+        return None
+    line = _unit_or_none((rejoin_p if rejoin_p is not None else base_p) - hold_p)
+    assert line is not None
+    mirrored = 2.0 * float(np.dot(hold_t, chord)) * chord - hold_t
+    options = [line, route_t, mirrored]
+    options += [v for v in (_unit_or_none(line + o) for o in options[1:]) if v is not None]
+    best, best_kappa = None, math.inf
+    for d in options:
+        if float(np.dot(d, chord)) <= 0.0:
+            continue
+        segs = [segment_through(hold_p, hold_t, base_p, d)]
+        if rejoin_p is not None:
+            if float(np.dot(rejoin_p - base_p, d)) <= 0.0:
+                continue
+            segs.append(segment_through(base_p, d, rejoin_p, rejoin_t))
+        kappa = max_abs_curvature(segs)
+        if kappa < best_kappa:
+            best, best_kappa = d, kappa
+    return best
+
+
+def _start_direction(
+    start: FloatArray, target: FloatArray, target_dir: FloatArray
+) -> tuple[FloatArray, float | None] | None:
+    """Unit direction in which a vehicle at rest (free to turn on the spot) leaves towards a
+    point it must pass along target_dir, and the handle length of that first segment (None:
+    a third of the chord). Of the chord (the default handles), target_dir mirrored about the
+    chord (a circular arc: handles 4/3 tan(theta/4) r for a turn theta of radius r) and
+    halfway between, the one whose segment curves least."""
+    chord = _unit_or_none(target - start)
+    if chord is None:
+        return None
+    length = float(np.hypot(*(target - start)))
+    mirrored = 2.0 * float(np.dot(target_dir, chord)) * chord - target_dir
+    half_turn = math.acos(min(1.0, max(-1.0, float(np.dot(target_dir, chord)))))
+    arc_handle = None
+    if half_turn > 1e-6:
+        radius = length / (2.0 * math.sin(half_turn))
+        arc_handle = 4.0 / 3.0 * math.tan(half_turn / 2.0) * radius
+    options: list[tuple[FloatArray, float | None]] = [(chord, None), (mirrored, arc_handle)]
+    halfway = _unit_or_none(chord + mirrored)
+    if halfway is not None:
+        options.append((halfway, None))
+    kappas = [
+        max_abs_curvature([segment_through(start, d, target, target_dir, h, h)]) for d, h in options
+    ]
+    return options[int(np.argmin(kappas))]

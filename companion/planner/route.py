@@ -87,3 +87,5 @@ class Route(Path):
         self.base_s = np.array([self.segment_start(i) for i in range(n - 1)] + [self.length])
         self.start_heading_rad = math.atan2(float(dirs[0][1]), float(dirs[0][0]))
         self.arrival_heading_rad = math.atan2(float(dirs[-1][1]), float(dirs[-1][0]))
+        self.arrival_heading_given = arrival_heading_rad is not None
+        """True when the arrival heading was asked for: the goal is then reached along it."""
