@@ -12,6 +12,7 @@ from companion.planner.avoidance import (
     free_intervals,
     max_abs_curvature,
     min_distance,
+    passed_beside,
     plan_detour,
     sample_segments,
 )
@@ -215,3 +216,21 @@ def test_from_rest_the_first_segment_leaves_in_the_least_curving_direction() -> 
     chord = segment_through(start, np.array([1.0, 1.0]) / math.sqrt(2.0), target, heading)
     assert max_abs_curvature([arc]) < 0.52
     assert max_abs_curvature([chord]) > 2.0 * max_abs_curvature([arc]) * 0.9
+
+
+def test_a_base_point_out_of_reach_is_reported_with_the_distance_it_is_missed_by() -> None:
+    """4 m behind the wall the base point cannot be passed through at the turn radius: the
+    correction passes beside it, and `passed_beside` names it and the miss; 7 m behind,
+    the correction goes through it and nothing is reported."""
+    pts = wall(20.0, -3.0, 1.0)
+    for behind, missed in ((4.0, True), (7.0, False)):
+        route = Route(np.array([[0.0, 0.0], [20.0 + behind, 0.0], [60.0, 0.0]]), 0.0, 0.0)
+        detour = plan_detour(route, request(pts), PARAMS)
+        assert detour is not None
+        beside = passed_beside(route, detour.path, np.zeros(2), detour.rejoin_s)
+        if missed:
+            assert [k for k, _ in beside] == [1]
+            miss = _nearest_to(detour.path.polyline().points, route.base_points[1])
+            assert beside[0][1] == pytest.approx(miss) and miss > 1.0
+        else:
+            assert beside == []

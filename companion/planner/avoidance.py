@@ -56,6 +56,8 @@ KEEP_ROUTE_FACTOR = 2.0
 """Lengths, in multiples of the shortest S-curve the turn radius allows, over which a
 candidate moves to its offset."""
 _SAMPLE_SPACING_M = 0.2
+BASE_POINT_REACHED_M = 0.5
+"""A path that comes this close to a base point passes through it (metres)."""
 SKIP_BASE_COST_M = 30.0
 """Extra cost per base point a candidate passes beside instead of through: tried after the
 candidates that pass through it, from the route's direction or another one."""
@@ -399,6 +401,26 @@ def _hold_and_rejoin(
     next_base = route.base_s[route.base_s > hold_end + 1e-6]
     limit = float(next_base[0]) if len(next_base) else route.length
     return hold_end, hold_end + ret, limit if hold_end + ret > limit else None
+
+
+def passed_beside(
+    route: Route, path: Path, start_xy: FloatArray, rejoin_s: float
+) -> list[tuple[int, float]]:
+    """Base points that a correction from start_xy, rejoining the route at rejoin_s, passes
+    beside instead of through: (index into route.base_points, distance in metres) for each
+    base point ahead of start_xy and before rejoin_s that the path misses by more than
+    BASE_POINT_REACHED_M."""
+    s0 = float(project(route.polyline(), np.asarray(start_xy, dtype=np.float64)[None, :])[0][0])
+    ahead = np.flatnonzero((route.base_s > s0 + 0.5) & (route.base_s < rejoin_s - 1e-6))
+    if len(ahead) == 0:
+        return []
+    points = path.polyline().points
+    out: list[tuple[int, float]] = []
+    for k in ahead.tolist():
+        miss = float(np.min(np.hypot(*(points - route.base_points[k]).T)))
+        if miss > BASE_POINT_REACHED_M:
+            out.append((k, miss))
+    return out
 
 
 def _skipped(route: Route, leave_s: float, hold_end: float) -> int:

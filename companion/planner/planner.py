@@ -39,6 +39,7 @@ from companion.planner.avoidance import (
     Detour,
     detour_search,
     min_distance_within,
+    passed_beside,
 )
 from companion.planner.decision import chord_steepness, decide, steepness, thresholds
 from companion.planner.frames import wrap_pi
@@ -877,11 +878,19 @@ class Planner:
             events.append("resumed")
         self._blocked = False
         self._unblocked_xy = None
+        self._say_passed_beside(detour.path, self._xd_prev[:2], detour.rejoin_s, events)
         self._set_path(detour.path, detour.mode, detour.side)
         if stop_first:
             self._stops = [0.0]
         self._detour_end_s = detour.path.length - (self.route.length - detour.rejoin_s)
         self._escape = self._escape_stretch()
+
+    def _say_passed_beside(
+        self, path: Path, start_xy: FloatArray, rejoin_s: float, events: list[str]
+    ) -> None:
+        """Say which base points a new path leaves out (out of its reach), and by how much."""
+        for k, miss in passed_beside(self.route, path, start_xy, rejoin_s):
+            events.append(f"base point {k + 1} out of reach: passing it {miss:.1f} m to the side")
 
     def _escape_stretch(self) -> tuple[FloatArray, FloatArray] | None:
         """The new path's first stretch inside the re-plan band, with the clearances it was
@@ -913,6 +922,8 @@ class Planner:
     def _start_retreat(self, plan: RetreatPlan, events: list[str]) -> None:
         """Back out along the covered track, stop, turn, and take the correction found."""
         detour = plan.detour
+        turn_xy = detour.path.segments[0].control[0]
+        self._say_passed_beside(detour.path, turn_xy, detour.rejoin_s, events)
         self._set_path(plan.path, PathMode.RETREAT, detour.side)
         self._stops = [0.0, plan.back_length_m]
         self._avoid_side = plan.failed_side
