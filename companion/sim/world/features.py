@@ -525,12 +525,12 @@ class SolidColumns:
         """(k, 4) cull boxes as (xmin, -xmax, ymin, -ymax): a box b meets them where every
         column is <= (b_xmax, -b_xmin, b_ymax, -b_ymin) (one comparison for all)."""
         bb = np.array([f.cull_bbox for f in feats], dtype=np.float64).reshape(-1, 4)
-        return bb * np.array([1.0, -1.0, 1.0, -1.0])
+        signed: FloatArray = bb * np.array([1.0, -1.0, 1.0, -1.0])
+        return signed
 
     @staticmethod
     def _in_reach(bb: FloatArray, box: BBox) -> NDArray[np.bool_]:
-        reach: NDArray[np.bool_] = (bb <= np.array([box[1], -box[0], box[3], -box[2]])).all(1)
-        return reach
+        return np.asarray((bb <= np.array([box[1], -box[0], box[3], -box[2]])).all(1))
 
     def first_entry(self, o: FloatArray, d: FloatArray, end: FloatArray, box: BBox) -> FloatArray:
         """min(end, the first entry t of each ray into any solid column whose cull box meets
