@@ -49,7 +49,8 @@ class SensorFan:
         if len(self.owner) == 0:
             return np.zeros(0)
         dirs = self.directions_flu @ r_world_body.T
-        origins = np.broadcast_to(np.asarray(position_enu, dtype=np.float64), dirs.shape)
+        origins = np.empty_like(dirs)  # (cheaper than np.broadcast_to for a few rays)
+        origins[:] = position_enu
         hits = np.asarray(raycast(origins, dirs, np.asarray(max_range_m)[self.owner]))
         if self.narrow:
             return hits

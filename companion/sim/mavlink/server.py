@@ -472,9 +472,8 @@ class SimServer:
         if not len(rf):
             return
         ranges, send = self.sensor_faults.apply(self.t_s, rf.measure(self.state))
-        for i in range(len(rf)):
-            if send[i]:
-                out(rf.message(self.codec.mav, i, float(ranges[i]), snap.time_boot_ms))
+        for msg in rf.messages(self.codec.mav, ranges, snap.time_boot_ms, send):
+            out(msg)
 
     def _flush_texts(self) -> None:
         texts, self.autopilot.texts = self.autopilot.texts, []

@@ -318,8 +318,8 @@ class RayCaster:
     @staticmethod
     def _sum_at(feats: list[Feature], o: FloatArray, d: FloatArray, T: FloatArray) -> FloatArray:
         """Sum of the features' contributions at o + T d, (n, m) for T (n, m)."""
-        X = o[:, 0:1] + d[:, 0:1] * T
-        Y = o[:, 1:2] + d[:, 1:2] * T
+        # x and y in one pass: (2, n, m), element for element as o_x + d_x T and o_y + d_y T
+        X, Y = o[:, :2].T[:, :, None] + d[:, :2].T[:, :, None] * T
         N = feats[0].evaluate(X, Y)
         for f in feats[1:]:
             N = N + f.evaluate(X, Y)
@@ -352,10 +352,12 @@ class RayCaster:
                 curv = math.inf
                 break
             curv += f.curvature
-        kf = np.full(lo.size, np.inf)
         if math.isfinite(curv):
             kf = curv * (d[:, 0] ** 2 + d[:, 1] ** 2) * 0.125
+        else:
+            kf = np.full(lo.size, np.inf)
         u = _unit_steps(m)[1:-1]
+        r = np.arange(lo.size)
         delta = tol / 2.2
         while True:
             w = hi - lo
@@ -372,7 +374,6 @@ class RayCaster:
             np.minimum(np.maximum(T, lo[:, None], out=T), hi[:, None], out=T)
             F = g0[:, None] + g1[:, None] * T - self._sum_at(feats, o, d, T)
             ins = F < 0.0
-            r = np.arange(lo.size)
             kh = np.where(ins, T, np.inf).argmin(axis=1)
             found = ins[r, kh]
             hi = np.where(found, T[r, kh], hi)
