@@ -28,12 +28,21 @@ class SensorFan:
     sensor's fan, and where each sensor's rays start in it."""
 
     def __init__(self, boresights_flu: FloatArray, fov_rad: FloatArray) -> None:
+        u = np.asarray(boresights_flu, dtype=np.float64).reshape(-1, 3)
+        w = np.asarray(fov_rad, dtype=np.float64).reshape(-1)
+        if u.shape[0] == w.shape[0] and not (w > 0.0).any():
+            # beams only: one ray each, the boresight (what sector_fan_flu gives a beam)
+            self.directions_flu: FloatArray = u.copy()
+            self.starts = np.arange(u.shape[0], dtype=np.intp)
+            self.owner = self.starts.copy()
+            self.narrow = True
+            return
         fans = [
             sector_fan_flu(u, float(w), SECTOR_RAYS if w > 0.0 else 1)
             for u, w in zip(np.asarray(boresights_flu).reshape(-1, 3), fov_rad, strict=True)
         ]
         counts = np.array([len(f) for f in fans], dtype=np.intp)
-        self.directions_flu: FloatArray = np.vstack(fans) if fans else np.zeros((0, 3))
+        self.directions_flu = np.vstack(fans) if fans else np.zeros((0, 3))
         self.starts = np.concatenate([[0], np.cumsum(counts)[:-1]]).astype(np.intp)
         self.owner = np.repeat(np.arange(len(fans)), counts)
         self.narrow = bool(np.all(counts == 1))
