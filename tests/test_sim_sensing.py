@@ -36,5 +36,6 @@ def test_sectors_and_beams_together() -> None:
     fan = SensorFan(u, fov)
     assert not fan.narrow
     np.testing.assert_array_equal(fan.directions_flu, _fans(u, fov))
-    assert fan.owner.tolist() == [0] + [1] * SECTOR_RAYS + [2] + [3] * SECTOR_RAYS + [4] * 9
+    k = SECTOR_RAYS
+    assert fan.owner.tolist() == [0] + [1] * k + [2] + [3] * k + [4] * k
     assert fan.starts.tolist() == [0, 1, 1 + SECTOR_RAYS, 2 + SECTOR_RAYS, 2 + 2 * SECTOR_RAYS]
