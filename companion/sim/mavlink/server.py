@@ -225,6 +225,8 @@ class SimServer:
         self._closed = False
         self._reboot_requested = False
         self._silent_until = -math.inf
+        self._link_key: tuple[float, float] | None = None
+        self._link_state = True
         self._after_ack: list[Any] = []
         self._commands = self._command_table()
         self._record_truth()
@@ -511,7 +513,11 @@ class SimServer:
             self._sendto(packet)
 
     def _link_up(self) -> bool:
-        return self.t_s >= self._silent_until and self.schedule.link_up(self.t_s)
+        key = (self.t_s, self._silent_until)  # a tick's messages ask the same question
+        if key != self._link_key:
+            self._link_key = key
+            self._link_state = self.t_s >= self._silent_until and self.schedule.link_up(self.t_s)
+        return self._link_state
 
     def _sendto(self, data: bytes) -> None:
         dest = self._destination()
