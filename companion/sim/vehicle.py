@@ -107,7 +107,7 @@ class IdealTracker:
         v = np.asarray(setpoint.velocity_enu, dtype=np.float64)
         horizontal = math.hypot(float(v[0]), float(v[1]))
         # Only while moving along: a vertical climb (take-off) is not a 90-degree pitch.
-        moving = horizontal > _ALONG_MPS and bool(np.all(np.isfinite(v)))
+        moving = horizontal > _ALONG_MPS and bool(np.isfinite(v).all())
         pitch = math.atan2(float(v[2]), horizontal) if moving else float(setpoint.pitch_rad)
         self._state = VehicleState(
             position_enu=np.asarray(setpoint.position_enu, dtype=np.float64).copy(),
@@ -164,7 +164,7 @@ class Multicopter:
         c = self.config
         x_d = np.asarray(setpoint.position_enu, dtype=np.float64).reshape(3)
         v_ff = np.asarray(setpoint.velocity_enu, dtype=np.float64).reshape(3)
-        if not (np.all(np.isfinite(x_d)) and np.all(np.isfinite(v_ff))):
+        if not (np.isfinite(x_d).all() and np.isfinite(v_ff).all()):
             raise ValueError("setpoint position and velocity must be finite")
         n = max(1, math.ceil(dt / MAX_SUBSTEP_S - 1e-9))
         h = dt / n

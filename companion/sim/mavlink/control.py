@@ -68,7 +68,7 @@ class ReferenceShaper:
         desired = ff.copy()
         if target_position is not None:
             tp = np.asarray(target_position, dtype=np.float64)
-            if np.all(np.isfinite(tp[:2])):
+            if np.isfinite(tp[:2]).all():
                 err = tp[:2] - self.position[:2]
                 dist = norm(err)
                 if dist > 1e-9:
