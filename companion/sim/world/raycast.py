@@ -188,8 +188,10 @@ class RayCaster:
         bad = np.minimum(G[:, :-1], G[:, 1:]) - 0.5 * (N[:, :-1] + N[:, 1:]) <= wl[:, None] - tol
         bad |= ins[:, 1:]  # implied, but for rounding and a height map's edge (a step)
         # Per ray in Python from here: the first interval not cleared (k) and the first
-        # sample inside (j; k < j where there is one).
-        # (array methods: np.argmax(x) and the like add a Python layer per call)
+        # sample inside (j; k < j where there is one). Only the few rays that graze or hit
+        # the terrain get past the first test; the same classification and parabola as
+        # array operations measured slower, for 11 rays a cast and for 76 (8 sector fans).
+        # (Array methods: np.argmax(x) and the like add a Python layer per call.)
         ka, ja = bad.argmax(axis=1), ins.argmax(axis=1)
         r = np.arange(n)
         ks: list[int] = ka.tolist()
