@@ -2,7 +2,8 @@
 flight, the pillars scenario's sensors from the poses of its in-process flight (five
 cylinders: all rays meet all solids in one set of array operations), and the paper's sensors
 over a 1000 x 1000 height map (0.1 m cells, seeded smooth terrain) from seeded random poses
-1-5 m above it. Each cast is the simulator's: all rays of a pose in one call."""
+1-5 m above it; and a ring of 8 proximity sectors (a fan of 9 rays each) with 4 surface
+beams over the paper world. Each cast is the simulator's: all rays of a pose in one call."""
 
 from __future__ import annotations
 
@@ -13,11 +14,13 @@ from pathlib import Path
 
 import numpy as np
 
-from bench.flight import Flight, load
+from bench.flight import SCENARIO_DIR, Flight, load
 from bench.report import Section
 from companion.harness.closed_loop import run as closed_loop_run
 from companion.planner import VehicleState
 from companion.planner.rotations import r_g
+from companion.sim.scenario import load_scenario
+from companion.sim.sensing import SensorFan
 from companion.sim.world import HeightmapConfig, World, WorldConfig
 
 HEIGHTMAP_CELLS = 1000
@@ -69,6 +72,20 @@ def run(flight: Flight, poses: int = 300, repeats: int = 3) -> Section:
     paper_poses = flight.states[:: max(1, len(flight.states) // poses)]
     paper_ns = _time_casts(world, dirs, max_range, paper_poses, repeats)
     sec.add("ray.paper_world_us", "per ray, paper world (11-ray casts)", paper_ns / 1e3, "us")
+
+    # The ring of 8 proximity sectors (a fan of rays each) over the same world and poses: the
+    # simulator casts every sector's fan and the surface beams in one call.
+    ring = load_scenario(SCENARIO_DIR / "thin-pillar-ring.yaml").sensor_table()
+    fan = SensorFan(ring.boresights_flu, ring.fov_rad)
+    fan_ns = _time_casts(
+        world, fan.directions_flu, ring.max_range_m[fan.owner], paper_poses, repeats
+    )
+    sec.add(
+        "ray.paper_world_fans_us",
+        f"per ray, paper world, 8 sector fans + 4 beams ({len(fan.owner)}-ray casts)",
+        fan_ns / 1e3,
+        "us",
+    )
 
     p_scenario, p_world = load("pillars")
     p_sensors = p_scenario.sensor_table()

@@ -536,3 +536,60 @@ def test_threaded_sim_reports_start_failures() -> None:
     with pytest.raises(RuntimeError, match="failed to start"), ThreadedSim(broken):
         pass
     assert threading.active_count() >= 1
+
+
+def _lockstep_datagrams(datagram_bytes: int, periods: int = 12) -> list[list[Any]]:
+    """The messages of each datagram the simulator sends in lockstep over its first periods,
+    a raw UDP client answering every TIMESYNC request at once."""
+    import socket
+
+    cfg = {
+        "speedup": math.inf,
+        "lockstep": {"enabled": True, "period_s": 0.05, "datagram_bytes": datagram_bytes},
+        "rates_hz": {"DISTANCE_SENSOR": 20.0, "ATTITUDE": 50.0, "GLOBAL_POSITION_INT": 50.0},
+    }
+    mav = mavlink.MAVLink(None, srcSystem=42, srcComponent=191)
+    parser = mavlink.MAVLink(None)
+    datagrams: list[list[Any]] = []
+    with (
+        ThreadedSim(lambda: make_server(**cfg), until_s=periods * 0.05) as sim,
+        socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as sock,
+    ):
+        sock.settimeout(5.0)
+        addr = ("127.0.0.1", sim.port)
+        sock.sendto(mav.heartbeat_encode(6, 8, 0, 0, 4).pack(mav), addr)
+        answered = 0
+        while answered < periods:
+            msgs = parser.parse_buffer(sock.recv(65536)) or []
+            datagrams.append(msgs)
+            for m in msgs:
+                if m.get_type() == "TIMESYNC" and m.tc1 == 0:
+                    sock.sendto(mav.timesync_encode(1, m.ts1).pack(mav), addr)
+                    answered += 1
+    return datagrams
+
+
+def test_lockstep_sends_a_period_in_one_datagram() -> None:
+    packed = _lockstep_datagrams(8192)
+    single = _lockstep_datagrams(0)
+    assert all(len(d) == 1 for d in single)
+    # one datagram per period, its TIMESYNC request last
+    requests = [d for d in packed if any(m.get_type() == "TIMESYNC" for m in d)]
+    assert len(requests) == len(packed) == 12
+    for d in packed:
+        assert d[-1].get_type() == "TIMESYNC" and d[-1].tc1 == 0
+        assert all(m.get_type() != "TIMESYNC" for m in d[:-1])
+    assert max(len(d) for d in packed) > 10  # telemetry and sensors, packed
+
+    def key(m: Any) -> tuple[Any, ...]:  # SYSTEM_TIME carries the computer's clock
+        return (m.get_type(), getattr(m, "time_boot_ms", None), getattr(m, "ts1", None))
+
+    # the same messages in the same order either way
+    assert [key(m) for d in packed for m in d] == [key(m) for d in single for m in d]
+
+
+def test_lockstep_datagrams_stay_within_their_size() -> None:
+    packed = _lockstep_datagrams(300, periods=4)
+    assert len(packed) > 4  # a period's messages did not fit one datagram
+    for d in packed:
+        assert sum(len(m.get_msgbuf()) for m in d) <= 300 or len(d) == 1

@@ -492,3 +492,23 @@ def test_bridge_core_from_a_fake_stream() -> None:
     assert msgs[0].time_boot_ms == 5000
     assert msgs[3].current_distance == pytest.approx(400 * math.sqrt(2), abs=2)
     assert isinstance(SimServer, type)
+
+
+def test_all_readings_at_once_are_each_reading_alone() -> None:
+    specs = sensors()
+    rng = np.random.default_rng(5)
+    for family in ("ardupilot", "px4"):
+        rf = Rangefinders(specs, PlaneAndWall(), family)
+        n = len(rf)
+        for _ in range(300):
+            ranges = rng.uniform(-1.0, 1.3 * float(rf.max_m.max()), n)
+            for value, share in ((math.inf, 0.2), (math.nan, 0.1), (0.0, 0.1), (-0.0, 0.05)):
+                ranges[rng.random(n) < share] = value
+            at_max = rng.random(n) < 0.1
+            ranges[at_max] = rf.max_m[at_max]
+            alone = [rf.current_cm(i, float(r)) for i, r in enumerate(ranges)]
+            assert rf.currents_cm(ranges) == alone
+        send = np.arange(n) % 2 == 0
+        msgs = [wire(m) for m in rf.messages(ENC, np.full(n, 3.0), 77, send)]
+        assert [m.id for m in msgs] == [rf.wire[i].mav_id for i in range(0, n, 2)]
+        assert all(m.current_distance == 300 and m.time_boot_ms == 77 for m in msgs)

@@ -87,3 +87,40 @@ def test_the_cast_agrees_with_the_reference_march() -> None:
     assert hit.sum() > 20
     np.testing.assert_array_equal(np.isfinite(fast), hit)
     np.testing.assert_allclose(fast[hit], ref[hit], atol=2e-3)
+
+
+def test_mesas_alone_at_once_equal_one_at_a_time_bit_for_bit() -> None:
+    # every column a cone: the batch takes the cone bounds without selecting per feature
+    rng = np.random.default_rng(11)
+    feats = [
+        MesaConfig(
+            center=(float(rng.uniform(-30, 30)), float(rng.uniform(-30, 30))),
+            radius_m=float(rng.uniform(1, 5)),
+            height_m=float(rng.uniform(1, 12)),
+            side_slope_deg=float(rng.uniform(30, 89)),
+        )
+        for _ in range(8)
+    ]
+    world = World(WorldConfig(features=feats))
+    o, d, rng_m = _rays(11)
+    batched = SolidColumns(world.field.solid).first_entry(o, d, rng_m, (-1e9, 1e9, -1e9, 1e9))
+    one_by_one = rng_m.copy()
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+        for f in world.field.solid:
+            t_in, t_out = f.ray_interval(o, d)
+            np.minimum(one_by_one, np.where(t_in < t_out, t_in, np.inf), out=one_by_one)
+    np.testing.assert_array_equal(batched, one_by_one)
+    assert (batched < rng_m).sum() > 20
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_reach_of_all_solids_at_once_is_each_cull_box_test(seed: int) -> None:
+    world = _world(seed)
+    cols = SolidColumns(world.field.solid)
+    rng = np.random.default_rng(seed)
+    for _ in range(200):
+        x0, y0 = rng.uniform(-45, 45, 2)
+        box = (float(x0), float(x0 + rng.uniform(0, 20)), float(y0), float(y0 + rng.uniform(0, 20)))
+        for feats, bb in ((cols.mesas, cols._mesa_bb), (cols.boxes, cols._box_bb)):
+            expected = [intersects(f.cull_bbox, box) for f in feats]
+            assert cols._in_reach(bb, box).tolist() == expected

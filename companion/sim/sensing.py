@@ -28,12 +28,21 @@ class SensorFan:
     sensor's fan, and where each sensor's rays start in it."""
 
     def __init__(self, boresights_flu: FloatArray, fov_rad: FloatArray) -> None:
+        u = np.asarray(boresights_flu, dtype=np.float64).reshape(-1, 3)
+        w = np.asarray(fov_rad, dtype=np.float64).reshape(-1)
+        if u.shape[0] == w.shape[0] and not (w > 0.0).any():
+            # beams only: one ray each, the boresight (what sector_fan_flu gives a beam)
+            self.directions_flu: FloatArray = u.copy()
+            self.starts = np.arange(u.shape[0], dtype=np.intp)
+            self.owner = self.starts.copy()
+            self.narrow = True
+            return
         fans = [
             sector_fan_flu(u, float(w), SECTOR_RAYS if w > 0.0 else 1)
             for u, w in zip(np.asarray(boresights_flu).reshape(-1, 3), fov_rad, strict=True)
         ]
         counts = np.array([len(f) for f in fans], dtype=np.intp)
-        self.directions_flu: FloatArray = np.vstack(fans) if fans else np.zeros((0, 3))
+        self.directions_flu = np.vstack(fans) if fans else np.zeros((0, 3))
         self.starts = np.concatenate([[0], np.cumsum(counts)[:-1]]).astype(np.intp)
         self.owner = np.repeat(np.arange(len(fans)), counts)
         self.narrow = bool(np.all(counts == 1))
@@ -49,7 +58,8 @@ class SensorFan:
         if len(self.owner) == 0:
             return np.zeros(0)
         dirs = self.directions_flu @ r_world_body.T
-        origins = np.broadcast_to(np.asarray(position_enu, dtype=np.float64), dirs.shape)
+        origins = np.empty_like(dirs)  # (cheaper than np.broadcast_to for a few rays)
+        origins[:] = position_enu
         hits = np.asarray(raycast(origins, dirs, np.asarray(max_range_m)[self.owner]))
         if self.narrow:
             return hits

@@ -47,6 +47,13 @@ def _check_dt(dt_s: float) -> float:
     return dt
 
 
+def norm(v: FloatArray) -> float:
+    """|v| of a float vector as numpy's linalg norm computes it (the square root of v.v),
+    without its Python layer: the same value, bit for bit."""
+    r = v.ravel(order="K")
+    return math.sqrt(float(r.dot(r)))
+
+
 class Vehicle(Protocol):
     """What the simulation loop needs from a vehicle model."""
 
@@ -100,7 +107,7 @@ class IdealTracker:
         v = np.asarray(setpoint.velocity_enu, dtype=np.float64)
         horizontal = math.hypot(float(v[0]), float(v[1]))
         # Only while moving along: a vertical climb (take-off) is not a 90-degree pitch.
-        moving = horizontal > _ALONG_MPS and bool(np.all(np.isfinite(v)))
+        moving = horizontal > _ALONG_MPS and bool(np.isfinite(v).all())
         pitch = math.atan2(float(v[2]), horizontal) if moving else float(setpoint.pitch_rad)
         self._state = VehicleState(
             position_enu=np.asarray(setpoint.position_enu, dtype=np.float64).copy(),
@@ -157,7 +164,7 @@ class Multicopter:
         c = self.config
         x_d = np.asarray(setpoint.position_enu, dtype=np.float64).reshape(3)
         v_ff = np.asarray(setpoint.velocity_enu, dtype=np.float64).reshape(3)
-        if not (np.all(np.isfinite(x_d)) and np.all(np.isfinite(v_ff))):
+        if not (np.isfinite(x_d).all() and np.isfinite(v_ff).all()):
             raise ValueError("setpoint position and velocity must be finite")
         n = max(1, math.ceil(dt / MAX_SUBSTEP_S - 1e-9))
         h = dt / n
@@ -165,7 +172,7 @@ class Multicopter:
         v_start = self._vel.copy()
         for _ in range(n):
             a = c.kp_per_s2 * (x_d - self._pos) + c.kv_per_s * (v_ff - self._vel)
-            a_norm = float(np.linalg.norm(a))
+            a_norm = norm(a)
             if a_norm > c.max_accel_mps2:
                 a *= c.max_accel_mps2 / a_norm
             v = self._vel + a * h

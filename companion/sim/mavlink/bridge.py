@@ -129,7 +129,7 @@ class BridgeCore:
         rf = self.rangefinders()
         ranges = rf.measure(state)
         stamp = self.boot_ms_at(now)
-        return [rf.message(mav, i, float(ranges[i]), stamp) for i in range(len(rf))]
+        return rf.messages(mav, ranges, stamp)
 
 
 class _Link(asyncio.DatagramProtocol):

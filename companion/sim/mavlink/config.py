@@ -21,6 +21,7 @@ Finite = Annotated[float, Field(allow_inf_nan=False)]
 NonNegative = Annotated[float, Field(ge=0, allow_inf_nan=False)]
 Positive = Annotated[float, Field(gt=0, allow_inf_nan=False)]
 Probability = Annotated[float, Field(ge=0, le=1, allow_inf_nan=False)]
+MAX_UDP_PAYLOAD_BYTES = 65507
 Window = tuple[NonNegative, NonNegative]
 """[start_s, end_s) of simulated time."""
 
@@ -73,6 +74,11 @@ class LockstepConfig(_Strict):
     enabled: bool = False
     period_s: Positive = 0.05
     timeout_s: Positive = 2.0
+    datagram_bytes: Annotated[int, Field(ge=0, le=MAX_UDP_PAYLOAD_BYTES)] = 8192
+    """A period's messages (its ticks' telemetry and replies, then the TIMESYNC request) go
+    out together, packed whole into datagrams of at most this many bytes (MAVLink over UDP
+    carries any number of whole frames in a datagram): one wake-up of the companion per
+    period instead of one per message. 0: one datagram per message, as outside lockstep."""
 
 
 class MotionLimits(_Strict):

@@ -18,6 +18,7 @@ import numpy as np
 from companion.planner.frames import wrap_pi
 from companion.planner.types import FloatArray
 from companion.sim.mavlink.config import MotionLimits
+from companion.sim.vehicle import norm
 
 
 def sqrt_controller(error: float, gain: float, accel_max: float) -> float:
@@ -35,7 +36,7 @@ def sqrt_controller(error: float, gain: float, accel_max: float) -> float:
 
 def stopping_point(position: FloatArray, velocity: FloatArray, accel_max: float) -> FloatArray:
     """Where a vehicle at `velocity` stops braking at accel_max (straight-line estimate)."""
-    speed = float(np.linalg.norm(velocity))
+    speed = norm(np.asarray(velocity, dtype=np.float64))
     return np.asarray(position, dtype=np.float64) + velocity * (speed / (2.0 * accel_max))
 
 
@@ -67,9 +68,9 @@ class ReferenceShaper:
         desired = ff.copy()
         if target_position is not None:
             tp = np.asarray(target_position, dtype=np.float64)
-            if np.all(np.isfinite(tp[:2])):
+            if np.isfinite(tp[:2]).all():
                 err = tp[:2] - self.position[:2]
-                dist = float(np.linalg.norm(err))
+                dist = norm(err)
                 if dist > 1e-9:
                     speed = sqrt_controller(dist, lim.position_gain, lim.accel_mps2)
                     desired[:2] += err / dist * speed
@@ -77,12 +78,12 @@ class ReferenceShaper:
                 desired[2] += sqrt_controller(
                     float(tp[2] - self.position[2]), lim.position_gain, lim.accel_mps2
                 )
-        speed_xy = float(np.linalg.norm(desired[:2]))
+        speed_xy = norm(desired[:2])
         if speed_xy > lim.speed_xy_mps:
             desired[:2] *= lim.speed_xy_mps / speed_xy
         desired[2] = min(max(desired[2], -lim.speed_down_mps), lim.speed_up_mps)
         dv = desired - self.velocity
-        dv_norm = float(np.linalg.norm(dv))
+        dv_norm = norm(dv)
         max_dv = lim.accel_mps2 * dt_s
         if dv_norm > max_dv:
             dv *= max_dv / dv_norm

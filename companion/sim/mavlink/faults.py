@@ -47,11 +47,14 @@ class SensorFaults:
         self.max_m = np.asarray(max_m, dtype=np.float64)
         self.rng = rng
         self._stuck: list[float | None] = [None] * len(sensor_ids)
+        self._any = any(self.per_sensor)
 
     def apply(self, t_s: float, ranges_m: FloatArray) -> tuple[FloatArray, FloatArray]:
         """(faulty ranges, send mask) for true ranges (n,) at time t_s."""
         out = np.array(ranges_m, dtype=np.float64)
         send = np.ones(len(out), dtype=bool)
+        if not self._any:
+            return out, send  # no faults configured: nothing to draw or hold
         for i, configs in enumerate(self.per_sensor):
             stuck_now = any(in_windows(c.stuck_windows, t_s) for c in configs)
             if not stuck_now:

@@ -40,6 +40,7 @@ from companion.sim.sensing import SensorFan
 
 UINT16_MAX = 65535
 ARDUPILOT_OUT_OF_RANGE_ADD_CM = 100
+_PX4_OUT_OF_RANGE_CM = min(int(np.float32(UINT16_MAX / 100.0) * np.float32(100.0)), UINT16_MAX)
 
 
 @dataclass(frozen=True, slots=True)
@@ -72,6 +73,10 @@ class Rangefinders:
         self.cast_range_m = self.max_m * 1.01  # beyond max is out of range anyway
         self.fan = SensorFan(self.boresights_flu, np.array([s.fov_rad for s in self.specs]))
         self.wire = tuple(self._wire(i, s, with_quaternion) for i, s in enumerate(self.specs))
+        self._out_of_range_cm = np.array(
+            [min(w.max_cm + ARDUPILOT_OUT_OF_RANGE_ADD_CM, UINT16_MAX) for w in self.wire],
+            dtype=np.int64,
+        )
 
     def _wire(self, index: int, spec: SensorSpec, with_quaternion: bool) -> SensorWire:
         orientation = mav_orientation_for_boresight(spec.boresight_frd)
@@ -108,13 +113,38 @@ class Rangefinders:
         # Both autopilots multiply a float metre value by 100.0f and truncate to uint16.
         return min(int(np.float32(max(range_m, 0.0)) * np.float32(100.0)), UINT16_MAX)
 
+    def currents_cm(self, ranges_m: FloatArray) -> list[int]:
+        """`current_cm` of every sensor at once, ranges_m (n,) metres."""
+        r = np.asarray(ranges_m, dtype=np.float64)
+        with np.errstate(invalid="ignore"):
+            in_range = np.isfinite(r) & (r < self.max_m)
+        out_cm = self._out_of_range_cm if self.family == "ardupilot" else _PX4_OUT_OF_RANGE_CM
+        # As current_cm: a float32 metre value times 100.0f, truncated (in range: >= 0).
+        cm = np.maximum(np.where(in_range, r, 0.0), 0.0).astype(np.float32) * np.float32(100.0)
+        cm_int = np.minimum(cm.astype(np.int64), UINT16_MAX)
+        return np.where(in_range, cm_int, out_cm).tolist()  # type: ignore[no-any-return]
+
+    def messages(
+        self, mav: Any, ranges_m: FloatArray, time_boot_ms: int, send: Any = None
+    ) -> list[Any]:
+        """DISTANCE_SENSOR of every sensor (where send, a mask (n,), holds; all if None)."""
+        cms = self.currents_cm(ranges_m)
+        return [
+            self._encode(mav, i, cm, time_boot_ms)
+            for i, cm in enumerate(cms)
+            if send is None or send[i]
+        ]
+
     def message(self, mav: Any, index: int, range_m: float, time_boot_ms: int) -> Any:
+        return self._encode(mav, index, self.current_cm(index, range_m), time_boot_ms)
+
+    def _encode(self, mav: Any, index: int, current_cm: int, time_boot_ms: int) -> Any:
         w = self.wire[index]
         return mav.distance_sensor_encode(
             time_boot_ms,
             w.min_cm,
             w.max_cm,
-            self.current_cm(index, range_m),
+            current_cm,
             mavlink.MAV_DISTANCE_SENSOR_LASER,
             w.mav_id,
             w.orientation,

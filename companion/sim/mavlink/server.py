@@ -20,7 +20,10 @@ Then it paces: `speedup` times real time (inf: as fast as possible), and in lock
 Lockstep protocol (the companion side implements the other half):
 - Every `lockstep.period_s` of simulated time (a whole number of ticks), after that tick's
   telemetry, the simulator sends TIMESYNC(tc1=0, ts1=simulated time since start in ns) and
-  stops.
+  stops. The period's messages go out together, the TIMESYNC request last, packed into
+  datagrams of at most `lockstep.datagram_bytes` (one per period as a rule): the companion
+  wakes once per period, not once per message, and receives the same messages in the same
+  order.
 - The companion runs its cycle on what it has received, sends its setpoint/commands, and
   then answers TIMESYNC(tc1=its clock in ns, non-zero, ts1=the same ts1) -- what it would
   answer to any TIMESYNC request, only delayed until its cycle is done.
@@ -108,6 +111,9 @@ class SimStats:
     received: int = 0
     received_by_type: Counter[str] = field(default_factory=Counter)
     sent: int = 0
+    """Messages sent (lockstep packs a period's messages into few datagrams)."""
+    datagrams: int = 0
+    """Datagrams sent."""
     dropped_link_down: int = 0
     reboots: int = 0
     decisions: deque[Decision] = field(default_factory=lambda: deque(maxlen=32))
@@ -161,6 +167,10 @@ class SimServer:
         self._lockstep_ticks = (
             max(1, round(config.lockstep.period_s / self.dt_s)) if config.lockstep.enabled else 0
         )
+        # lockstep: the period's outgoing frames, sent together before its TIMESYNC request
+        self._batch_bytes = config.lockstep.datagram_bytes if config.lockstep.enabled else 0
+        self._batch: list[bytes] = []
+        self._batch_len = 0
 
         x, y, z = (list(start_position_enu) + [0.0] * 3)[:3] if start_position_enu else (0, 0, 0)
         if not self.personality.is_submarine or start_position_enu is None:
@@ -215,6 +225,8 @@ class SimServer:
         self._closed = False
         self._reboot_requested = False
         self._silent_until = -math.inf
+        self._link_key: tuple[float, float] | None = None
+        self._link_state = True
         self._after_ack: list[Any] = []
         self._commands = self._command_table()
         self._record_truth()
@@ -285,6 +297,7 @@ class SimServer:
             if self._lockstep_ticks and self._tick_index % self._lockstep_ticks == 0:
                 await self._lockstep_wait()
             await self.pacer.pace(self.t_s)
+        self._flush_batch()
 
     async def run_forever(self) -> None:
         await self.run_until(math.inf)
@@ -303,6 +316,7 @@ class SimServer:
             with contextlib.suppress(asyncio.CancelledError):
                 await self._task
         if self._transport is not None:
+            self._flush_batch()
             self._transport.close()
             self._transport = None
 
@@ -460,9 +474,8 @@ class SimServer:
         if not len(rf):
             return
         ranges, send = self.sensor_faults.apply(self.t_s, rf.measure(self.state))
-        for i in range(len(rf)):
-            if send[i]:
-                out(rf.message(self.codec.mav, i, float(ranges[i]), snap.time_boot_ms))
+        for msg in rf.messages(self.codec.mav, ranges, snap.time_boot_ms, send):
+            out(msg)
 
     def _flush_texts(self) -> None:
         texts, self.autopilot.texts = self.autopilot.texts, []
@@ -500,13 +513,37 @@ class SimServer:
             self._sendto(packet)
 
     def _link_up(self) -> bool:
-        return self.t_s >= self._silent_until and self.schedule.link_up(self.t_s)
+        key = (self.t_s, self._silent_until)  # a tick's messages ask the same question
+        if key != self._link_key:
+            self._link_key = key
+            self._link_state = self.t_s >= self._silent_until and self.schedule.link_up(self.t_s)
+        return self._link_state
 
     def _sendto(self, data: bytes) -> None:
         dest = self._destination()
         if dest is None or self._transport is None:
             return
         self.stats.sent += 1
+        if not self._batch_bytes:
+            self.stats.datagrams += 1
+            self._transport.sendto(data, dest)
+            return
+        if self._batch and self._batch_len + len(data) > self._batch_bytes:
+            self._flush_batch()
+        self._batch.append(data)
+        self._batch_len += len(data)
+
+    def _flush_batch(self) -> None:
+        """Send the frames held for the lockstep period, whole, in one datagram."""
+        if not self._batch:
+            return
+        data = b"".join(self._batch)
+        self._batch.clear()
+        self._batch_len = 0
+        dest = self._destination()
+        if dest is None or self._transport is None:
+            return
+        self.stats.datagrams += 1
         self._transport.sendto(data, dest)
 
     # ------------------------------------------------------------------- receiving
@@ -701,6 +738,7 @@ class SimServer:
                 await asyncio.wait_for(self._peer_event.wait(), deadline - loop.time())
             data = self.codec.encode(self.codec.mav.timesync_encode(0, ts1))
             self._sendto(data)
+            self._flush_batch()
             await asyncio.wait_for(self._reply_event.wait(), max(deadline - loop.time(), 0.0))
         except TimeoutError:
             self.stats.lockstep_stalls += 1

@@ -78,7 +78,7 @@ class Distances:
         search within its vertical clearance (which bounds the answer), refined on the
         analytic terrain around the best sample, to a few millimetres.
         """
-        px, py, pz = (float(v) for v in np.asarray(p, np.float64).reshape(3))
+        px, py, pz = np.asarray(p, np.float64).reshape(3).tolist()
         d = self._solid_distance(self.field.solid, px, py, pz)
         if d == 0.0:
             return 0.0
@@ -177,7 +177,7 @@ class Distances:
         solid feature counts (its whole column) if it rises above the terrain anywhere; an
         additive one where it rises more than OBSTACLE_MIN_RISE_M (raster + refinement).
         """
-        px, py, pz = (float(v) for v in np.asarray(p, np.float64).reshape(3))
+        px, py, pz = np.asarray(p, np.float64).reshape(3).tolist()
         exposed, ras = self._obstacle_parts
         d = self._solid_distance(exposed, px, py, pz)
         if ras is None or d == 0.0:

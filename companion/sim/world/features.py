@@ -419,6 +419,7 @@ def mesa_intervals(
     # The column is convex: z < top, r <= r_out and (mesa) r <= R + (top - z) / tan.
     px, py, oz = o[:, 0:1] - cx, o[:, 1:2] - cy, o[:, 2:3]
     dx, dy, dz = d[:, 0:1], d[:, 1:2], d[:, 2:3]
+    up, down = dz > 0.0, dz < 0.0
     a = np.maximum(dx * dx + dy * dy, 1e-300)
     b = px * dx + py * dy
     pp = px * px + py * py
@@ -426,13 +427,15 @@ def mesa_intervals(
     sq = np.sqrt(np.maximum(disc, 0.0))
     t_in = np.maximum((-b - sq) / a, 0.0)
     t_out = np.where(disc >= 0.0, (sq - b) / a, -np.inf)
-    t_top = (top - oz) / dz  # z < top: before t_top going up, after it going down
-    t_in = np.where(dz < 0.0, np.maximum(t_in, t_top), t_in)
-    t_out = np.where(dz > 0.0, np.minimum(t_out, t_top), t_out)
+    above = top - oz
+    t_top = above / dz  # z < top: before t_top going up, after it going down
+    t_in = np.where(down, np.maximum(t_in, t_top), t_in)
+    t_out = np.where(up, np.minimum(t_out, t_top), t_out)
     cone = ~np.isnan(tan)
-    if cone.any():
+    cones = int(np.count_nonzero(cone))
+    if cones:
         # Cone r = G(t) = g0 + g1 t (G > 0 wherever z < top): q(t) = G^2 - r^2 >= 0.
-        g0 = r + (top - oz) / tan
+        g0 = r + above / tan
         g1 = -dz / tan
         qa = g1 * g1 - a
         qb = g0 * g1 - b
@@ -444,8 +447,11 @@ def mesa_intervals(
         lo, hi = np.fmin(r1, r2), np.fmax(r1, r2)
         # qa < 0: inside between the roots (if any); qa >= 0: two half-lines, the
         # lower nappe's is the first one going up and the second one going down.
-        c_in = np.where(qa < 0.0, lo, np.where(dz > 0.0, -np.inf, hi))
-        c_out = np.where(qa < 0.0, np.where(qd >= 0.0, hi, -np.inf), np.where(dz > 0.0, lo, np.inf))
+        inner = qa < 0.0
+        c_in = np.where(inner, lo, np.where(up, -np.inf, hi))
+        c_out = np.where(inner, np.where(qd >= 0.0, hi, -np.inf), np.where(up, lo, np.inf))
+        if cones == cone.size:
+            return np.fmax(t_in, c_in), np.fmin(t_out, c_out)
         # a cylinder's column (no cone) keeps its interval as it is
         t_in = np.where(cone, np.fmax(t_in, c_in), t_in)
         t_out = np.where(cone, np.fmin(t_out, c_out), t_out)
@@ -516,35 +522,35 @@ class SolidColumns:
 
     @staticmethod
     def _bboxes(feats: Sequence[Feature]) -> FloatArray:
-        return np.array([f.cull_bbox for f in feats], dtype=np.float64).reshape(-1, 4)
+        """(k, 4) cull boxes as (xmin, -xmax, ymin, -ymax): a box b meets them where every
+        column is <= (b_xmax, -b_xmin, b_ymax, -b_ymin) (one comparison for all)."""
+        bb = np.array([f.cull_bbox for f in feats], dtype=np.float64).reshape(-1, 4)
+        signed: FloatArray = bb * np.array([1.0, -1.0, 1.0, -1.0])
+        return signed
 
     @staticmethod
     def _in_reach(bb: FloatArray, box: BBox) -> NDArray[np.bool_]:
-        return np.asarray(
-            (bb[:, 0] <= box[1])
-            & (box[0] <= bb[:, 1])
-            & (bb[:, 2] <= box[3])
-            & (box[2] <= bb[:, 3])
-        )
+        return np.asarray((bb <= np.array([box[1], -box[0], box[3], -box[2]])).all(1))
 
     def first_entry(self, o: FloatArray, d: FloatArray, end: FloatArray, box: BBox) -> FloatArray:
         """min(end, the first entry t of each ray into any solid column whose cull box meets
         box), (n,). o, d: (n, 3), no zero components in d."""
-        out = end.copy()
-        with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
-            for bb, params, fn in (
-                (self._mesa_bb, self._mesa, mesa_intervals),
-                (self._box_bb, self._box, box_intervals),
-            ):
-                if not bb.shape[0]:
-                    continue
-                keep = self._in_reach(bb, box)
-                if not keep.any():
-                    continue
-                sel = params if keep.all() else type(params)(*(p[keep] for p in params))
+        out = end
+        for bb, params, fn in (
+            (self._mesa_bb, self._mesa, mesa_intervals),
+            (self._box_bb, self._box, box_intervals),
+        ):
+            if not bb.shape[0]:
+                continue
+            keep = self._in_reach(bb, box)
+            kept = int(np.count_nonzero(keep))
+            if not kept:
+                continue
+            sel = params if kept == keep.size else type(params)(*(p[keep] for p in params))
+            with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
                 t_in, t_out = fn(o, d, *sel)
-                t_in = np.where(t_in < t_out, t_in, np.inf)
-                np.minimum(out, t_in.min(axis=1), out=out)
+            t_in = np.where(t_in < t_out, t_in, np.inf)
+            out = np.minimum(out, t_in.min(axis=1))
         return out
 
 

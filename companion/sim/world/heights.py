@@ -27,13 +27,19 @@ class HeightField:
 
     @staticmethod
     def xy(x: ArrayLike, y: ArrayLike) -> tuple[FloatArray, FloatArray]:
-        bx, by = np.broadcast_arrays(np.asarray(x, np.float64), np.asarray(y, np.float64))
+        ax, ay = np.asarray(x, np.float64), np.asarray(y, np.float64)
+        if ax.shape == ay.shape:  # (the common case; np.broadcast_arrays costs more)
+            return ax, ay
+        bx, by = np.broadcast_arrays(ax, ay)
         return bx, by
 
     @staticmethod
     def box_of(x: FloatArray, y: FloatArray) -> BBox | None:
         if x.size == 0:
             return None
+        if x.size == 1 and y.size == 1:  # one point (the ground under the vehicle)
+            px, py = float(x.reshape(-1)[0]), float(y.reshape(-1)[0])
+            return (px, px, py, py)
         return (float(x.min()), float(x.max()), float(y.min()), float(y.max()))
 
     @staticmethod

@@ -117,7 +117,8 @@ class RayCaster:
             raise ValueError(f"step_m must be > 0, got {step}")
         if n == 0:
             return np.full(0, np.inf)
-        d = np.where(d == 0.0, TINY, d)  # no zero components: slab tests divide by them
+        if not d.all():  # no zero components: slab tests divide by them
+            d = np.where(d == 0.0, TINY, d)
         r_max = float(rng.max())
         lo3, hi3 = o.min(axis=0), o.max(axis=0)
         box = (
@@ -187,11 +188,16 @@ class RayCaster:
         bad = np.minimum(G[:, :-1], G[:, 1:]) - 0.5 * (N[:, :-1] + N[:, 1:]) <= wl[:, None] - tol
         bad |= ins[:, 1:]  # implied, but for rounding and a height map's edge (a step)
         # Per ray in Python from here: the first interval not cleared (k) and the first
-        # sample inside (j; k < j where there is one).
-        ks: list[int] = np.argmax(bad, axis=1).tolist()
-        js: list[int] = np.argmax(ins, axis=1).tolist()
-        hits: list[bool] = np.any(ins, axis=1).tolist()
-        bads: list[bool] = np.any(bad, axis=1).tolist()
+        # sample inside (j; k < j where there is one). Only the few rays that graze or hit
+        # the terrain get past the first test; the same classification and parabola as
+        # array operations measured slower, for 11 rays a cast and for 76 (8 sector fans).
+        # (Array methods: np.argmax(x) and the like add a Python layer per call.)
+        ka, ja = bad.argmax(axis=1), ins.argmax(axis=1)
+        r = np.arange(n)
+        ks: list[int] = ka.tolist()
+        js: list[int] = ja.tolist()
+        hits: list[bool] = ins[r, ja].tolist()  # the first True, if any
+        bads: list[bool] = bad[r, ka].tolist()
         out = [math.inf] * n
         jerk: float | None = 0.0
         for f in feats:
@@ -225,13 +231,13 @@ class RayCaster:
         res = np.array(out)
         if refine:
             c = np.array(refine)
-            kc, jc = np.asarray(ks)[c], np.asarray(js)[c]
+            kc, jc = ka[c], ja[c]
             res[c] = self._refine_terrain(
                 o[c], d[c], g0[c], g1[c], feats, T[c, kc], T[c, jc], F[c, kc], F[c, jc], tol
             )
         if slow:
             u = np.array(slow)
-            ku = np.asarray(ks)[u]
+            ku = ka[u]
             res[u] = self._scan_slow(o[u], d[u], T[u, ku], end[u], g0[u], g1[u], feats, step, tol)
         return res
 
@@ -314,8 +320,8 @@ class RayCaster:
     @staticmethod
     def _sum_at(feats: list[Feature], o: FloatArray, d: FloatArray, T: FloatArray) -> FloatArray:
         """Sum of the features' contributions at o + T d, (n, m) for T (n, m)."""
-        X = o[:, 0:1] + d[:, 0:1] * T
-        Y = o[:, 1:2] + d[:, 1:2] * T
+        # x and y in one pass: (2, n, m), element for element as o_x + d_x T and o_y + d_y T
+        X, Y = o[:, :2].T[:, :, None] + d[:, :2].T[:, :, None] * T
         N = feats[0].evaluate(X, Y)
         for f in feats[1:]:
             N = N + f.evaluate(X, Y)
@@ -348,31 +354,34 @@ class RayCaster:
                 curv = math.inf
                 break
             curv += f.curvature
-        kf = np.full(lo.size, np.inf)
         if math.isfinite(curv):
             kf = curv * (d[:, 0] ** 2 + d[:, 1] ** 2) * 0.125
+        else:
+            kf = np.full(lo.size, np.inf)
         u = _unit_steps(m)[1:-1]
+        r = np.arange(lo.size)
         delta = tol / 2.2
         while True:
             w = hi - lo
             drop = flo - fhi
             ts = lo + w * (flo / drop)
-            if float(np.max(kf * w * w * w / drop - 0.5 * tol)) <= 0.0 or float(w.max()) <= tol:
+            if float((kf * w * w * w / drop - 0.5 * tol).max()) <= 0.0 or float(w.max()) <= tol:
                 return ts
-            T = np.concatenate(
-                [lo[:, None] + w[:, None] * u, (ts - delta)[:, None], (ts + delta)[:, None]],
-                axis=1,
-            )
-            T = np.clip(T, lo[:, None], hi[:, None])
+            T = np.empty((lo.size, m + 1))
+            np.multiply(w[:, None], u, out=T[:, : m - 1])
+            T[:, : m - 1] += lo[:, None]
+            T[:, m - 1] = ts - delta
+            T[:, m] = ts + delta
+            # clamped into the bracket (as np.clip, without its Python layer)
+            np.minimum(np.maximum(T, lo[:, None], out=T), hi[:, None], out=T)
             F = g0[:, None] + g1[:, None] * T - self._sum_at(feats, o, d, T)
             ins = F < 0.0
-            r = np.arange(lo.size)
-            kh = np.argmin(np.where(ins, T, np.inf), axis=1)
+            kh = np.where(ins, T, np.inf).argmin(axis=1)
             found = ins[r, kh]
             hi = np.where(found, T[r, kh], hi)
             fhi = np.where(found, F[r, kh], fhi)
             cand = np.where(~ins & (hi[:, None] > T), T, -np.inf)
-            kl = np.argmax(cand, axis=1)
+            kl = cand.argmax(axis=1)
             better = cand[r, kl] > lo
             lo = np.where(better, T[r, kl], lo)
             flo = np.where(better, F[r, kl], flo)
