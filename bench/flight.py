@@ -21,6 +21,7 @@ from companion.harness.closed_loop import sense
 from companion.planner import Decision, Planner, VehicleState
 from companion.planner.types import FloatArray
 from companion.sim.scenario import Scenario, load_scenario
+from companion.sim.sensing import SensorFan
 from companion.sim.vehicle import make_vehicle
 from companion.sim.world import World
 
@@ -93,13 +94,14 @@ def fly(
     start = scenario.start(world)
     planner = Planner(params, sensors, route, start)
     vehicle = make_vehicle(scenario.vehicle, VehicleState(start, 0.0, 0.0, route.start_heading_rad))
+    fan = SensorFan(sensors.boresights_flu, sensors.fov_rad)  # built once, as the closed loop does
     dt = scenario.dt_s
     flight = Flight(name, dt)
     state = vehicle.state
     for k in range(round(scenario.duration_s / dt)):
         state_before = state
         t0 = clock()
-        ranges = sense(world, sensors, state)
+        ranges = sense(world, sensors, state, fan)
         t1 = clock()
         if k in snapshot_cycles:
             flight.snapshots.append(Snapshot(k, copy.deepcopy(planner), state, ranges, dt))
