@@ -303,7 +303,7 @@ def detour_search(
                 break
             tail_check.append(seg)
             tail_len += seg.length
-        if _comes_closer(
+        if comes_closer(
             [*detour_segments, *tail_check], obstacles, required, inflation, start_floor
         ):
             yield
@@ -357,7 +357,7 @@ def _offsets(
     return candidates
 
 
-def _comes_closer(
+def comes_closer(
     segments: list[CubicBezier],
     obstacles_xy: FloatArray,
     limit_m: float,

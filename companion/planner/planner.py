@@ -43,6 +43,7 @@ from companion.planner.avoidance import (
 )
 from companion.planner.decision import chord_steepness, decide, steepness, thresholds
 from companion.planner.frames import wrap_pi
+from companion.planner.gridpath import GridPlan, grid_search
 from companion.planner.memory import ObstacleMemory
 from companion.planner.params import ArcMethod, PlannerParams
 from companion.planner.path import Path
@@ -186,11 +187,12 @@ class _ClearanceCache(NamedTuple):
 
 @dataclass(frozen=True, slots=True)
 class _Resolved:
-    """How a re-plan search ended: a correction from here, a retreat, or neither (None,
-    None: blocked)."""
+    """How a re-plan search ended: a correction from here, a retreat, a way over the grid,
+    or none of them (blocked)."""
 
     detour: Detour | None = None
     retreat: RetreatPlan | None = None
+    grid: GridPlan | None = None
 
 
 class Planner:
@@ -286,6 +288,8 @@ class Planner:
         # An accepted correction's stretch inside the re-plan band: arc lengths on the path
         # and the clearances it was accepted with (`_escape_exempt`); None if it has none.
         self._escape: tuple[FloatArray, FloatArray] | None = None
+        # Flying straight legs over the grid (`gridpath`): a conflict is met by the grid.
+        self._grid_way = False
         # X_d where the blocked state was left without a new path (`_set_blocked`).
         self._unblocked_xy: FloatArray | None = None
 
@@ -445,6 +449,7 @@ class Planner:
             else:
                 events.append("obstacle passed, back on route")
                 self._mode, self._side = PathMode.ROUTE, Side.NONE
+                self._grid_way = False
                 self._avoid_side = Side.NONE
         finished = (
             self._path.length - self._s <= params.goal_tolerance_m
@@ -652,6 +657,7 @@ class Planner:
         self._after_retreat = None
         self._search = None
         self._escape = None
+        self._grid_way = False
 
     def _record_track(self, x: float, y: float) -> None:
         """Append X_d to the covered track every _TRACK_SPACING_M; going back over the
@@ -822,6 +828,9 @@ class Planner:
         if resolved.retreat is not None:
             self._start_retreat(resolved.retreat, events)
             return True
+        if resolved.grid is not None:
+            self._take_grid_way(resolved.grid, events)
+            return True
         self._failed_attempt, self._failed_cycle = attempt, self._cycle
         return False
 
@@ -831,6 +840,13 @@ class Planner:
         """The re-plan search in work units (yields False per unit): a correction from here;
         failing that (yields True once: blocked) and at rest, a retreat along the covered
         track to where a correction on the other side exists."""
+        if self._grid_way:
+            # On a way over the grid, a conflict is met the same way: stop, search the grid.
+            yield True
+            if not at_rest:
+                return _Resolved()
+            way = yield from _units(grid_search(self.route, request, self.params))
+            return _Resolved(grid=way)
         detour = yield from _units(detour_search(self.route, request, self.params))
         if detour is not None:
             return _Resolved(detour=detour)
@@ -841,7 +857,10 @@ class Planner:
         plan = yield from _units(
             retreat_search(self.route, request, self.params, track, _TRACK_SPACING_M, self._side)
         )
-        return _Resolved(retreat=plan)
+        if plan is not None:
+            return _Resolved(retreat=plan)
+        grid = yield from _units(grid_search(self.route, request, self.params))
+        return _Resolved(grid=grid)
 
     def _advance_search(
         self, search: Generator[bool, None, _Resolved], events: list[str]
@@ -918,6 +937,22 @@ class Planner:
         planned = np.interp(look_s, esc_s, esc_clear)
         exempt: BoolArray = on & (clearance >= planned - _ESCAPE_TOLERANCE_M)
         return exempt
+
+    def _take_grid_way(self, plan: GridPlan, events: list[str]) -> None:
+        """Fly the straight legs over the grid to a base point, stopping at every corner."""
+        legs = len(plan.stops)
+        events.append(
+            f"no correction or retreat: {legs} straight leg{'s' if legs > 1 else ''} "
+            f"round the obstacles to base point {plan.base_index + 1}, stopping at each corner"
+        )
+        self._say_passed_beside(plan.path, self._xd_prev[:2], plan.rejoin_s, events)
+        self._blocked = False
+        self._unblocked_xy = None
+        self._set_path(plan.path, PathMode.AROUND, Side.NONE)
+        self._grid_way = True
+        self._stops = [0.0, *plan.stops]
+        self._detour_end_s = plan.legs_length_m
+        self._escape = self._escape_stretch()
 
     def _start_retreat(self, plan: RetreatPlan, events: list[str]) -> None:
         """Back out along the covered track, stop, turn, and take the correction found."""

@@ -1,0 +1,259 @@
+"""Last resort when blocked at rest: a way to the next base point over a grid of the memory.
+
+The corrections (`avoidance`) hold one lateral offset along the route and the retreat
+(`retreat`) backs out along the covered track; neither can go round the end of a wall to a
+base point behind it, or out of a pocket the other way. When both fail at rest, this module
+searches the obstacle memory rasterised on a grid (A*, 8-connected), pulls the cell path
+taut into straight legs, and returns them with a stop at every corner: the vehicle stops,
+turns on the spot and goes on, as it does after backing out. The legs end at the base point,
+where the route's tail takes over (one more stop to turn onto it).
+
+Unseen space counts as free: the way is a proposal from what is known, checked like every
+correction (`avoidance.comes_closer`: D_m, or the re-plan distance in a narrow place, from
+every remembered point along the legs and the tail's look-ahead), and re-planned as new
+points come in. Pure and deterministic; searched in work units like the other searches.
+Frame: local ENU x, y metres.
+"""
+
+from __future__ import annotations
+
+import heapq
+import itertools
+import math
+from collections.abc import Generator
+from dataclasses import dataclass
+
+import numpy as np
+
+from companion.planner.avoidance import AvoidanceRequest, comes_closer, min_distance
+from companion.planner.bezier import CubicBezier
+from companion.planner.params import PlannerParams
+from companion.planner.path import Path, project
+from companion.planner.route import Route
+from companion.planner.types import BoolArray, FloatArray
+
+CELL_M = 0.5
+"""Grid cell size, metres."""
+MARGIN_M = 15.0
+"""The grid covers the start and the base point grown by this, metres."""
+EXPANSIONS_PER_UNIT = 500
+"""A* cell expansions per work unit."""
+MAX_EXPANSIONS = 60_000
+"""A search that expands more cells than this gives up (bounded work)."""
+BASE_POINTS_TRIED = 2
+"""How many base points ahead are tried as the goal, nearest first."""
+_NEIGHBOURS = ((1, 0), (-1, 0), (0, 1), (0, -1), (1, 1), (1, -1), (-1, 1), (-1, -1))
+
+
+@dataclass(frozen=True, slots=True)
+class GridPlan:
+    """A way over the grid: the path (straight legs, then the route's tail from the base
+    point), the arc lengths along it at which to stop (every corner and the base point),
+    which base point it goes to, where that is on the route, and the legs' length (m)."""
+
+    path: Path
+    stops: tuple[float, ...]
+    base_index: int
+    rejoin_s: float
+    legs_length_m: float
+
+
+def grid_search(
+    route: Route, request: AvoidanceRequest, params: PlannerParams
+) -> Generator[None, None, GridPlan | None]:
+    """Search, in work units, for straight legs from request.start_xy to one of the next
+    BASE_POINTS_TRIED base points that keep D_m (else the re-plan distance plus 5 cm) from
+    every remembered point; None if there is none."""
+    start = np.asarray(request.start_xy, dtype=np.float64)
+    obstacles = request.obstacles_xy
+    inflation = request.obstacles_inflation
+    if inflation is None:
+        inflation = np.zeros(len(obstacles))
+    d_m = params.d_min_m + params.clearance_margin_m
+    narrow_m = params.d_min_m + 0.5 * params.clearance_margin_m + 0.05
+    start_clear = float(min_distance(start[None, :], obstacles, inflation)[0])
+    s0 = float(project(route.polyline(), start[None, :])[0][0])
+    ahead = np.flatnonzero(route.base_s > s0 + 0.5)[:BASE_POINTS_TRIED]
+    for k in ahead.tolist():
+        goal = route.base_points[k]
+        for keep_m in (d_m, narrow_m) if d_m - narrow_m >= 0.1 else (d_m,):
+            grid = _Grid.around(start, goal, obstacles, inflation, keep_m, start_clear)
+            yield
+            if grid.blocked_at(goal):
+                continue
+            cells = yield from _astar(grid, start, goal)
+            if cells is None:
+                continue
+            corners = _pull_taut(grid, cells, start, goal)
+            plan = _plan(route, k, corners)
+            required = min(keep_m - 0.05, max(params.d_min_m, start_clear - 0.05))
+            floor = start_clear - 0.05 if start_clear - 0.05 < required else None
+            legs = list(plan.path.segments[: len(corners) - 1])
+            tail_check, tail_len = [], 0.0
+            for seg in plan.path.segments[len(corners) - 1 :]:
+                if tail_len > params.lookahead_m:
+                    break
+                tail_check.append(seg)
+                tail_len += seg.length
+            yield
+            if not comes_closer([*legs, *tail_check], obstacles, required, inflation, floor):
+                return plan
+    return None
+
+
+@dataclass(frozen=True, slots=True)
+class _Grid:
+    """Blocked cells (ny, nx) of a grid with its lower-left corner at origin (x, y)."""
+
+    origin: FloatArray
+    blocked: BoolArray
+
+    @classmethod
+    def around(
+        cls,
+        start: FloatArray,
+        goal: FloatArray,
+        obstacles: FloatArray,
+        inflation: FloatArray,
+        keep_m: float,
+        start_clear_m: float,
+    ) -> _Grid:
+        """The grid over start and goal grown by MARGIN_M; a cell is blocked when its centre
+        is within keep_m + the point's inflation + half a cell diagonal of a point. Around a
+        start already closer than keep_m, the cells it needs to get out are left free (the
+        check of the legs holds it to avoidance.ESCAPE_SLOPE)."""
+        lo = np.minimum(start, goal) - MARGIN_M
+        hi = np.maximum(start, goal) + MARGIN_M
+        nx, ny = (np.ceil((hi - lo) / CELL_M).astype(int) + 1).tolist()
+        blocked = np.zeros((ny, nx), dtype=bool)
+        reach = keep_m + inflation + CELL_M * math.sqrt(0.5)
+        near = np.all((obstacles >= lo - reach[:, None]) & (obstacles <= hi + reach[:, None]), 1)
+        pts, reach = obstacles[near], reach[near]
+        if len(pts):
+            r_cells = math.ceil(float(reach.max()) / CELL_M)
+            span = np.arange(-r_cells, r_cells + 1)
+            off = np.stack(np.meshgrid(span, span), -1).reshape(-1, 2)  # (m, 2) as (dx, dy)
+            base = np.floor((pts - lo) / CELL_M).astype(int)  # (k, 2) as (ix, iy)
+            cells = base[:, None, :] + off[None, :, :]  # (k, m, 2)
+            centres = lo + (cells + 0.5) * CELL_M
+            dist = np.hypot(centres[..., 0] - pts[:, 0, None], centres[..., 1] - pts[:, 1, None])
+            inside = (dist <= reach[:, None]) & (cells[..., 0] >= 0) & (cells[..., 1] >= 0)
+            inside &= (cells[..., 0] < nx) & (cells[..., 1] < ny)
+            hit = cells[inside]
+            blocked[hit[:, 1], hit[:, 0]] = True
+        if start_clear_m < keep_m:
+            free_r = keep_m - start_clear_m + 2.0 * CELL_M
+            iy, ix = np.mgrid[0:ny, 0:nx]
+            cx, cy = lo[0] + (ix + 0.5) * CELL_M, lo[1] + (iy + 0.5) * CELL_M
+            blocked[np.hypot(cx - start[0], cy - start[1]) <= free_r] = False
+        return cls(lo, blocked)
+
+    def cell(self, xy: FloatArray) -> tuple[int, int]:
+        """(ix, iy) of the cell holding xy (clamped to the grid)."""
+        ny, nx = self.blocked.shape
+        ix, iy = np.floor((np.asarray(xy) - self.origin) / CELL_M).astype(int).tolist()
+        return min(max(ix, 0), nx - 1), min(max(iy, 0), ny - 1)
+
+    def centre(self, ix: int, iy: int) -> FloatArray:
+        return self.origin + (np.array([ix, iy]) + 0.5) * CELL_M
+
+    def blocked_at(self, xy: FloatArray) -> bool:
+        ix, iy = self.cell(xy)
+        return bool(self.blocked[iy, ix])
+
+    def clear_line(self, a: FloatArray, b: FloatArray) -> bool:
+        """True if no blocked cell lies under the segment a-b (sampled every quarter cell)."""
+        n = max(2, math.ceil(float(np.hypot(*(b - a))) / (0.25 * CELL_M)) + 1)
+        xy = a[None, :] + np.linspace(0.0, 1.0, n)[:, None] * (b - a)[None, :]
+        ny, nx = self.blocked.shape
+        idx = np.floor((xy - self.origin) / CELL_M).astype(int)
+        if np.any(idx < 0) or np.any(idx[:, 0] >= nx) or np.any(idx[:, 1] >= ny):
+            return False
+        return not bool(self.blocked[idx[:, 1], idx[:, 0]].any())
+
+
+def _astar(
+    grid: _Grid, start: FloatArray, goal: FloatArray
+) -> Generator[None, None, list[tuple[int, int]] | None]:
+    """Cells from start's to goal's, 8-connected through free cells (the start's cell may
+    be blocked); yields every EXPANSIONS_PER_UNIT expansions; None if there is no way or the
+    search expands more than MAX_EXPANSIONS cells. Ties break on insertion order."""
+    blocked = grid.blocked
+    ny, nx = blocked.shape
+    s, g = grid.cell(start), grid.cell(goal)
+    gx, gy = g
+    best: dict[tuple[int, int], float] = {s: 0.0}
+    parent: dict[tuple[int, int], tuple[int, int]] = {}
+    frontier: list[tuple[float, int, tuple[int, int]]] = [(0.0, 0, s)]
+    count, expanded = 1, 0
+    done: set[tuple[int, int]] = set()
+    while frontier:
+        _, _, here = heapq.heappop(frontier)
+        if here in done:
+            continue
+        if here == g:
+            path = [here]
+            while path[-1] in parent:
+                path.append(parent[path[-1]])
+            return path[::-1]
+        done.add(here)
+        expanded += 1
+        if expanded > MAX_EXPANSIONS:
+            return None
+        if expanded % EXPANSIONS_PER_UNIT == 0:
+            yield
+        hx, hy = here
+        cost_here = best[here]
+        for dx, dy in _NEIGHBOURS:
+            cx, cy = hx + dx, hy + dy
+            if not (0 <= cx < nx and 0 <= cy < ny) or blocked[cy, cx]:
+                continue
+            if dx and dy and (blocked[hy, cx] or blocked[cy, hx]):
+                continue  # no corner cutting between two blocked cells
+            step = math.sqrt(2.0) if dx and dy else 1.0
+            cost = cost_here + step
+            nxt = (cx, cy)
+            if cost < best.get(nxt, math.inf):
+                best[nxt] = cost
+                parent[nxt] = here
+                h = math.hypot(gx - cx, gy - cy)
+                heapq.heappush(frontier, (cost + h, count, nxt))
+                count += 1
+    return None
+
+
+def _pull_taut(
+    grid: _Grid, cells: list[tuple[int, int]], start: FloatArray, goal: FloatArray
+) -> list[FloatArray]:
+    """The cell path as few straight legs: from each corner, the farthest later cell centre
+    (or the goal) in clear sight. Corners (n, 2) from start to goal."""
+    points = [start, *(grid.centre(ix, iy) for ix, iy in cells[1:-1]), goal]
+    corners = [start]
+    i = 0
+    while i < len(points) - 1:
+        j = len(points) - 1
+        while j > i + 1 and not grid.clear_line(points[i], points[j]):
+            j -= 1
+        corners.append(points[j])
+        i = j
+    return corners
+
+
+def _plan(route: Route, k: int, corners: list[FloatArray]) -> GridPlan:
+    """Straight legs through the corners, then the route's tail from base point k."""
+    legs = []
+    for a, b in itertools.pairwise(corners):
+        d = b - a
+        legs.append(CubicBezier(np.array([a, a + d / 3.0, a + 2.0 * d / 3.0, b])))
+    tail = route.tail_from(float(route.base_s[k]))
+    stops, along = [], 0.0
+    for leg in legs:
+        along += leg.length
+        stops.append(along)
+    return GridPlan(
+        path=Path([*legs, *tail]),
+        stops=tuple(stops),
+        base_index=k,
+        rejoin_s=float(route.base_s[k]),
+        legs_length_m=along,
+    )
