@@ -146,8 +146,15 @@ class MavCodec:
     def decode(self, data: bytes, datagram: bool = True) -> list[MAVLinkMessage]:
         """Good messages in `data`; everything else is counted in `counters`."""
         out: list[MAVLinkMessage] = []
+        mav = self.mav
         try:
-            msgs = self.mav.parse_buffer(data) or []
+            # `parse_buffer`, without its last call on an empty buffer (which cannot give a
+            # message): one parser call for a datagram holding one frame, the usual case
+            msgs: list[MAVLinkMessage] = []
+            m = mav.parse_char(data)
+            while m is not None:
+                msgs.append(m)
+                m = mav.parse_char(b"") if mav.buf_len() > 0 else None
         except Exception as exc:
             self.counters.parser_errors += 1
             log.debug("parser error: %r", exc)
@@ -176,7 +183,7 @@ class MavCodec:
             else:
                 c.frames += 1
                 out.append(m)
-        if datagram and self.mav.buf_len() > 0:
+        if datagram and mav.buf_len() > 0:
             c.truncated += 1
             self._reset()
         return out

@@ -95,9 +95,10 @@ def height_only(old: PlannerParams, new: PlannerParams) -> bool:
 
 def finite_setpoint(sp: Setpoint) -> bool:
     """True when position, velocity and yaw are all finite (the only setpoints sent)."""
-    return bool(
-        np.all(np.isfinite(sp.position_enu))
-        and np.all(np.isfinite(sp.velocity_enu))
+    # element by element: cheaper than numpy's reductions for two 3-vectors
+    return (
+        all(map(math.isfinite, sp.position_enu))
+        and all(map(math.isfinite, sp.velocity_enu))
         and math.isfinite(sp.yaw_rad)
     )
 
