@@ -168,12 +168,22 @@ class PlannerHost:
         self._built_params = self.params
         self._rebuild_due = False
         """Parameters changed beyond what the running planner can take: rebuild next step."""
-        self.shift = np.zeros(3)
-        """Sum of the accepted position jumps: planner frame = estimate - shift (ENU m)."""
+        self._shift = np.zeros(3)
+        self._shifted = False
         self._last_planner_xd: FloatArray | None = None
         self._planner_t: float | None = None
 
     # --- H_d -------------------------------------------------------------------------------
+
+    @property
+    def shift(self) -> FloatArray:
+        """Sum of the accepted position jumps: planner frame = estimate - shift (ENU m)."""
+        return self._shift
+
+    @shift.setter
+    def shift(self, value: FloatArray) -> None:
+        self._shift = np.asarray(value, dtype=np.float64)
+        self._shifted = bool(self._shift.any())
 
     @property
     def h_d_m(self) -> float:
@@ -300,14 +310,14 @@ class PlannerHost:
         return True
 
     def _to_planner(self, state: VehicleState) -> VehicleState:
-        if not self.shift.any():
+        if not self._shifted:
             return state
         return VehicleState(
             state.position_enu - self.shift, state.roll_rad, state.pitch_rad, state.yaw_rad
         )
 
     def _from_planner(self, result: StepResult) -> StepResult:
-        if not self.shift.any():
+        if not self._shifted:
             return result
         sp = result.setpoint
         moved = Setpoint(sp.position_enu + self.shift, sp.velocity_enu, sp.yaw_rad, sp.pitch_rad)
