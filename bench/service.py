@@ -22,7 +22,9 @@ with its
   flown in the real-time run (thread CPU around each step, through the service's
   `planner_factory`), and the rest: the service's CPU per cycle less all of those (event
   loop, sockets, dispatch, the cycle's bookkeeping, and the parts' cost in a live process
-  against a warm loop).
+  against a warm loop). Live, the same run also splits the CPU per cycle three ways:
+  receiving (thread CPU around the service's receive callback, through `TimedLink`), the
+  planner's step, and all else.
 - lockstep: the simulator in this process, lockstep and as fast as possible; the service as
   `companion run` in a child process (sim time). Simulated s per wall s while flying the
   route, and the service's resident memory after 1 simulated minute and after 1 hour.
@@ -81,7 +83,8 @@ def _msgid(frame: bytes) -> int | None:
 
 class TimedLink(UdpOutLink):
     """A `UdpOutLink` that notes when each datagram reaches the service and when each
-    setpoint is sent (perf_counter seconds)."""
+    setpoint is sent (perf_counter seconds), and the thread CPU time the service spends on
+    the datagrams it receives (decode, dispatch, telemetry: `rx_cpu_ns`)."""
 
     def __init__(self, host: str, port: int) -> None:
         super().__init__(host, port)
@@ -92,6 +95,7 @@ class TimedLink(UdpOutLink):
         """Per input type: setpoint send time - arrival of the newest datagram of that type,
         for the setpoints that followed one (s)."""
         self._pending: dict[int, float] = {}
+        self.rx_cpu_ns = 0
 
     async def open(self, receiver: Receiver) -> None:
         def timed(data: bytes, peer: Any) -> None:
@@ -99,7 +103,9 @@ class TimedLink(UdpOutLink):
             msgid = _msgid(data)
             if msgid is not None and msgid in INPUT_TYPES:
                 self._pending[msgid] = now
+            t0 = time.thread_time_ns()
             receiver(data, peer)
+            self.rx_cpu_ns += time.thread_time_ns() - t0
 
         await super().open(timed)
 
@@ -356,12 +362,14 @@ async def realtime(seconds: float) -> dict[str, Any]:
                     samples.clear()
                 cycles0 = svc.counters["cycles"]
                 step0, steps0 = planner_cpu["step_ns"], planner_cpu["steps"]
+                rx0 = link.rx_cpu_ns
                 cpu0, wall0 = time.process_time(), time.perf_counter()
                 await asyncio.sleep(seconds)
                 cpu1, wall1 = time.process_time(), time.perf_counter()
                 cycles = svc.counters["cycles"] - cycles0
                 step_ns = planner_cpu["step_ns"] - step0
                 steps = planner_cpu["steps"] - steps0
+                rx_ns = link.rx_cpu_ns - rx0
                 setpoints = list(link.setpoints)
                 by_type = {k: [int(v * 1e9) for v in vs] for k, vs in link.by_type.items()}
                 counters = svc.counter_values()
@@ -386,6 +394,7 @@ async def realtime(seconds: float) -> dict[str, Any]:
         "cpu_per_cycle_us": 1e6 * cpu_s / max(cycles, 1),
         "planner_steps": steps,
         "planner_step_per_cycle_us": step_ns / 1e3 / max(cycles, 1),
+        "receive_per_cycle_us": rx_ns / 1e3 / max(cycles, 1),
         "pinned_core": service_core,
         "cycle_overruns": counters.get("service.cycle_overruns", 0),
         "cycles_by_input": counters.get("service.cycles_by_input", 0),
@@ -536,7 +545,11 @@ def run(quick: bool = False) -> Section:
     )
     for part, label in PART_LABELS:
         sec.add(f"service.part.{part}_us", f"per cycle, in process: {label}", parts[part], "us")
-    planner_us = rt["planner_step_per_cycle_us"]
+    cpu_us, planner_us, rx_us = (
+        rt["cpu_per_cycle_us"],
+        rt["planner_step_per_cycle_us"],
+        rt["receive_per_cycle_us"],
+    )
     sec.add(
         "service.part.planner_us",
         f"per cycle, live: the planner's step ({rt['planner_steps']} steps)",
@@ -545,8 +558,20 @@ def run(quick: bool = False) -> Section:
     )
     sec.add(
         "service.part.rest_us",
-        "per cycle: the rest (service CPU per cycle less the parts above)",
-        rest_us(rt["cpu_per_cycle_us"], parts, planner_us),
+        "per cycle: service CPU less the in-process parts and the planner",
+        rest_us(cpu_us, parts, planner_us),
+        "us",
+    )
+    sec.add(
+        "service.live.receive_us",
+        "per cycle, live: receiving 13 datagrams (decode, dispatch, telemetry)",
+        rx_us,
+        "us",
+    )
+    sec.add(
+        "service.live.cycle_rest_us",
+        "per cycle, live: all else (cycle, setpoint, flight log, event loop, sockets)",
+        cpu_us - rx_us - planner_us,
         "us",
     )
     sec.add(
