@@ -335,7 +335,8 @@ class Telemetry:
         back = last is not None and last - time_boot_ms > REBOOT_BACKSTEP_MS
         if ahead or back:
             return self._clock_evidence(key, time_boot_ms, off, t_rx, back)
-        self._clock_candidates.clear()
+        if self._clock_candidates:
+            self._clock_candidates.clear()
         if last is not None and time_boot_ms <= last:
             self._count("out_of_order" if time_boot_ms < last else "duplicate")
             return False
