@@ -173,8 +173,6 @@ class PlannerHost:
         self._last_planner_xd: FloatArray | None = None
         self._planner_t: float | None = None
 
-    # --- H_d -------------------------------------------------------------------------------
-
     @property
     def shift(self) -> FloatArray:
         """Sum of the accepted position jumps: planner frame = estimate - shift (ENU m)."""
@@ -184,6 +182,8 @@ class PlannerHost:
     def shift(self, value: FloatArray) -> None:
         self._shift = np.asarray(value, dtype=np.float64)
         self._shifted = bool(self._shift.any())
+
+    # --- H_d -------------------------------------------------------------------------------
 
     @property
     def h_d_m(self) -> float:
