@@ -1,0 +1,86 @@
+"""The last resort when blocked at rest: straight legs over a grid of the memory."""
+
+import itertools
+
+import numpy as np
+
+from companion.planner.avoidance import AvoidanceRequest, min_distance, plan_detour
+from companion.planner.gridpath import grid_search
+from companion.planner.params import PlannerParams
+from companion.planner.route import Route
+
+PARAMS = PlannerParams(d_min_m=2.0, clearance_margin_m=0.6, min_turn_radius_m=2.0)
+D_M = PARAMS.d_min_m + PARAMS.clearance_margin_m
+
+
+def _run(search):  # type: ignore[no-untyped-def]
+    units = 0
+    while True:
+        try:
+            next(search)
+            units += 1
+        except StopIteration as done:
+            return done.value, units
+
+
+def _line(a: tuple[float, float], b: tuple[float, float], step: float = 0.25) -> np.ndarray:
+    n = int(np.hypot(b[0] - a[0], b[1] - a[1]) / step) + 1
+    return np.linspace(a, b, n)
+
+
+def _at_rest(start: tuple[float, float], points: np.ndarray) -> AvoidanceRequest:
+    return AvoidanceRequest(
+        start_xy=np.array(start), start_dir=None, conflict_xy=points, obstacles_xy=points
+    )
+
+
+def test_a_base_point_behind_a_wall_end_is_reached_round_the_end() -> None:
+    """The route crosses a long wall (y from -30 to 3) just before base point W2, 3 m behind
+    it. No correction reaches W2 (they hold an offset along the route); the grid finds legs
+    round the wall's end to W2 that keep D_m from every point, stopping at each corner."""
+    wall = _line((20.0, -30.0), (20.0, 3.0))
+    route = Route(np.array([[0.0, 0.0], [23.0, 0.0], [50.0, 0.0]]), 0.0, 0.0)
+    start = (15.0, 0.0)
+    plan, units = _run(grid_search(route, _at_rest(start, wall), PARAMS))
+    assert plan is not None and units >= 2  # set-up and check at least: it is resumable
+    assert plan.base_index == 1 and plan.rejoin_s == route.base_s[1]
+    legs = plan.path.segments[: len(plan.stops)]
+    np.testing.assert_allclose(legs[0].evaluate(0.0), start, atol=1e-12)
+    np.testing.assert_allclose(legs[-1].evaluate(1.0), route.base_points[1], atol=1e-12)
+    for a, b in itertools.pairwise(legs):
+        np.testing.assert_allclose(a.evaluate(1.0), b.evaluate(0.0), atol=1e-12)
+    # The stops are the corners' arc lengths, the last one at the base point.
+    np.testing.assert_allclose(plan.stops, np.cumsum([leg.length for leg in legs]))
+    assert plan.legs_length_m == plan.stops[-1]
+    # Every leg is straight and keeps D_m; the way goes round the wall's upper end.
+    samples = np.vstack([leg.sample(200) for leg in legs])
+    assert float(min_distance(samples, wall).min()) >= D_M - 0.05
+    assert float(samples[:, 1].max()) > 3.0 + D_M - 0.1
+    # The tail after the base point is the route's own.
+    tail = plan.path.segments[len(plan.stops) :]
+    np.testing.assert_allclose(tail[-1].evaluate(1.0), route.base_points[-1], atol=1e-9)
+
+
+def test_no_way_over_the_grid_is_none() -> None:
+    """A closed ring round the vehicle: no way out, the search ends with None."""
+    ang = np.linspace(0.0, 2.0 * np.pi, 240, endpoint=False)
+    ring = np.column_stack([10.0 + 5.0 * np.cos(ang), 5.0 * np.sin(ang)])
+    route = Route(np.array([[0.0, 0.0], [30.0, 0.0]]), 0.0, 0.0)
+    plan, _ = _run(grid_search(route, _at_rest((10.0, 0.0), ring), PARAMS))
+    assert plan is None
+
+
+def test_where_corrections_skip_the_base_point_the_grid_reaches_it() -> None:
+    """4 m behind a wall across the route the base point is out of the corrections' reach
+    (the one found passes beside it); the grid's legs end exactly on it."""
+    wall = _line((20.0, -3.0), (20.0, 1.0))
+    route = Route(np.array([[0.0, 0.0], [24.0, 0.0], [60.0, 0.0]]), 0.0, 0.0)
+    request = _at_rest((10.0, 0.0), wall)
+    detour = plan_detour(route, request, PARAMS)
+    assert detour is not None
+    miss = float(np.min(np.hypot(*(detour.path.polyline().points - [24.0, 0.0]).T)))
+    assert miss > 1.0
+    plan, _ = _run(grid_search(route, request, PARAMS))
+    assert plan is not None
+    end = plan.path.segments[len(plan.stops) - 1].evaluate(1.0)
+    np.testing.assert_allclose(end, [24.0, 0.0], atol=1e-12)
