@@ -8,6 +8,7 @@ right-wing-down positive. Conversions from MAVLink's NED/FRD live in `companion.
 from __future__ import annotations
 
 import enum
+import math
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -62,11 +63,17 @@ class VehicleState:
 
     def __post_init__(self) -> None:
         pos = np.array(self.position_enu, dtype=np.float64).reshape(3)
-        if not np.all(np.isfinite(pos)):
+        x, y, z = pos.tolist()
+        # Plain floats: this runs every cycle, and numpy's per-call cost was most of it.
+        if not (math.isfinite(x) and math.isfinite(y) and math.isfinite(z)):
             raise ValueError(f"position_enu must be finite, got {pos}")
-        for name in ("roll_rad", "pitch_rad", "yaw_rad"):
-            if not np.isfinite(getattr(self, name)):
-                raise ValueError(f"{name} must be finite, got {getattr(self, name)}")
+        for name, value in (
+            ("roll_rad", self.roll_rad),
+            ("pitch_rad", self.pitch_rad),
+            ("yaw_rad", self.yaw_rad),
+        ):
+            if not math.isfinite(value):
+                raise ValueError(f"{name} must be finite, got {value}")
         pos.setflags(write=False)
         object.__setattr__(self, "position_enu", pos)
 
