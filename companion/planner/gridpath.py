@@ -36,8 +36,8 @@ CELL_M = 0.5
 """Grid cell size, metres."""
 MARGIN_M = 15.0
 """The grid covers the start and the base point grown by this, metres."""
-EXPANSIONS_PER_UNIT = 500
-"""A* cell expansions per work unit."""
+EXPANSIONS_PER_UNIT = 50
+"""A* cell expansions per work unit (about as costly as one candidate correction's check)."""
 MAX_EXPANSIONS = 60_000
 """A search that expands more cells than this gives up (bounded work)."""
 BASE_POINTS_TRIED = 2
@@ -84,7 +84,7 @@ def grid_search(
             cells = yield from _astar(grid, start, goal)
             if cells is None:
                 continue
-            corners = _pull_taut(grid, cells, start, goal)
+            corners = yield from _pull_taut(grid, cells, start, goal)
             plan = _plan(route, k, corners)
             required = min(keep_m - 0.05, max(params.d_min_m, start_clear - 0.05))
             floor = start_clear - 0.05 if start_clear - 0.05 < required else None
@@ -224,16 +224,20 @@ def _astar(
 
 def _pull_taut(
     grid: _Grid, cells: list[tuple[int, int]], start: FloatArray, goal: FloatArray
-) -> list[FloatArray]:
+) -> Generator[None, None, list[FloatArray]]:
     """The cell path as few straight legs: from each corner, the farthest later cell centre
-    (or the goal) in clear sight. Corners (n, 2) from start to goal."""
+    (or the goal) in clear sight; yields every EXPANSIONS_PER_UNIT sight lines. Corners
+    from start to goal."""
     points = [start, *(grid.centre(ix, iy) for ix, iy in cells[1:-1]), goal]
     corners = [start]
-    i = 0
+    i, lines = 0, 0
     while i < len(points) - 1:
         j = len(points) - 1
         while j > i + 1 and not grid.clear_line(points[i], points[j]):
             j -= 1
+            lines += 1
+            if lines % EXPANSIONS_PER_UNIT == 0:
+                yield
         corners.append(points[j])
         i = j
     return corners
