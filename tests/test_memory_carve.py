@@ -7,6 +7,7 @@ import pytest
 
 from companion.planner import Decision, Planner, PlannerParams, Route, VehicleState
 from companion.planner.memory import ObstacleMemory
+from companion.planner.types import PathMode
 from tests.test_planner import SENSORS, flat_ranges
 
 
@@ -48,7 +49,7 @@ def test_carving_is_deterministic() -> None:
     assert np.array_equal(a.points_xy(), b.points_xy())
 
 
-def _fly_with_one_spurious_echo(carve: bool, monkeypatch: pytest.MonkeyPatch) -> list:  # type: ignore[type-arg]
+def _fly_with_one_spurious_echo(carve: bool, monkeypatch: pytest.MonkeyPatch) -> tuple:  # type: ignore[type-arg]
     if not carve:
         monkeypatch.setattr(Planner, "_carve", lambda self, *args: None)
     route = Route(np.array([[0.0, 0.0], [40.0, 0.0]]), 0.0, 0.0)
@@ -62,23 +63,28 @@ def _fly_with_one_spurious_echo(carve: bool, monkeypatch: pytest.MonkeyPatch) ->
         res = planner.step(here, ranges, 0.05)
         out.append(res)
         here = VehicleState(res.setpoint.position_enu, 0.0, 0.0, res.setpoint.yaw_rad)
-    return out
+    return out, planner
 
 
 @pytest.mark.parametrize("carve", [True, False])
 def test_phantoms_that_later_rays_see_through_end_the_blocked_state(
     carve: bool, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    out = _fly_with_one_spurious_echo(carve, monkeypatch)
+    out, planner = _fly_with_one_spurious_echo(carve, monkeypatch)
     assert out[20].diagnostics.decision is Decision.BLOCKED  # the phantoms block at first
     last = out[-1].diagnostics
     if carve:  # the next cycle's rays see nothing where they are: cleared, flying on
         assert last.decision is not Decision.BLOCKED
         assert last.speed_ref_mps == pytest.approx(1.0)
         assert out[-1].setpoint.position_enu[0] > 5.0
-    else:  # without carving the memory is never corrected: stopped for good
-        assert last.decision is Decision.BLOCKED
-        assert last.speed_ref_mps == 0.0
+    else:  # without carving the phantoms stay: no flying on through them
+        phantoms = planner.memory_points_xy
+        assert len(phantoms) > 0
+        # Stopped for good, or (the last resort) straight legs round them that keep D_min.
+        assert last.decision is Decision.BLOCKED or last.mode is PathMode.AROUND
+        for res in out[20:]:
+            xy = res.setpoint.position_enu[:2]
+            assert float(np.min(np.hypot(*(phantoms - xy).T))) >= PlannerParams().d_min_m
 
 
 def test_a_wall_the_rays_end_on_is_kept() -> None:
