@@ -839,7 +839,8 @@ class Planner:
     ) -> Generator[bool, None, _Resolved]:
         """The re-plan search in work units (yields False per unit): a correction from here;
         failing that (yields True once: blocked) and at rest, a retreat along the covered
-        track to where a correction on the other side exists."""
+        track to where a correction on the other side exists; failing that too, straight
+        legs over a grid of the memory (`gridpath`). On such legs, only the grid again."""
         if self._grid_way:
             # On a way over the grid, a conflict is met the same way: stop, search the grid.
             yield True
