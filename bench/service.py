@@ -15,8 +15,17 @@ with its
   (`os.sched_setaffinity`, as `taskset` would), as on a companion computer's single core; a
   Raspberry Pi 4 runs pure Python about 10x slower than this class of x86-64 core, so the
   figure x 10 is the Pi estimate printed beside it.
-- the floor: what pymavlink alone costs per cycle (parse the 13 inputs, pack a setpoint),
-  and the service's CPU per cycle as a multiple of it.
+- the floor: what pymavlink alone costs per cycle (parse the 13 inputs, pack a setpoint;
+  the median of blocks measured before and after the real-time run), and the service's CPU
+  per cycle as a multiple of it.
+- where a cycle's CPU goes: the service's own parts in process (codec, telemetry, pairing,
+  geodesy, flight log) on the inputs as the simulator sends them, the planner's step as
+  flown in the real-time run (thread CPU around each step, through the service's
+  `planner_factory`), and the rest: the service's CPU per cycle less all of those (event
+  loop, sockets, dispatch, the cycle's bookkeeping, and the parts' cost in a live process
+  against a warm loop). Live, the same run also splits the CPU per cycle three ways:
+  receiving (thread CPU around the service's receive callback, through `TimedLink`), the
+  planner's step, and all else.
 - lockstep: the simulator in this process, lockstep and as fast as possible; the service as
   `companion run` in a child process (sim time). Simulated s per wall s while flying the
   route, and the service's resident memory after 1 simulated minute and after 1 hour.
@@ -47,6 +56,7 @@ from bench.report import REPO, Section, percentiles_us
 from companion.config import parse_config
 from companion.harness.fly import service_config
 from companion.service import Service
+from companion.service.host import PlannerLike, default_planner_factory
 from companion.service.link import Receiver, UdpOutLink
 from companion.service.notify import SystemdNotifier
 from companion.sim.mavlink import SimServer
@@ -74,7 +84,8 @@ def _msgid(frame: bytes) -> int | None:
 
 class TimedLink(UdpOutLink):
     """A `UdpOutLink` that notes when each datagram reaches the service and when each
-    setpoint is sent (perf_counter seconds)."""
+    setpoint is sent (perf_counter seconds), and the thread CPU time the service spends on
+    the datagrams it receives (decode, dispatch, telemetry: `rx_cpu_ns`)."""
 
     def __init__(self, host: str, port: int) -> None:
         super().__init__(host, port)
@@ -85,6 +96,7 @@ class TimedLink(UdpOutLink):
         """Per input type: setpoint send time - arrival of the newest datagram of that type,
         for the setpoints that followed one (s)."""
         self._pending: dict[int, float] = {}
+        self.rx_cpu_ns = 0
 
     async def open(self, receiver: Receiver) -> None:
         def timed(data: bytes, peer: Any) -> None:
@@ -92,7 +104,9 @@ class TimedLink(UdpOutLink):
             msgid = _msgid(data)
             if msgid is not None and msgid in INPUT_TYPES:
                 self._pending[msgid] = now
+            t0 = time.thread_time_ns()
             receiver(data, peer)
+            self.rx_cpu_ns += time.thread_time_ns() - t0
 
         await super().open(timed)
 
@@ -104,6 +118,25 @@ class TimedLink(UdpOutLink):
                 self.by_type[INPUT_TYPES[msgid]].append(now - t_rx)
             self._pending.clear()
         super().send(data)
+
+
+class TimedPlanner:
+    """The service's planner, with the thread CPU time of each step added up (ns)."""
+
+    def __init__(self, planner: PlannerLike, totals: dict[str, int]) -> None:
+        self._planner = planner
+        self._totals = totals
+
+    def step(self, state: Any, ranges_m: Any, dt_s: float) -> Any:
+        t0 = time.thread_time_ns()
+        try:
+            return self._planner.step(state, ranges_m, dt_s)
+        finally:
+            self._totals["step_ns"] += time.thread_time_ns() - t0
+            self._totals["steps"] += 1
+
+    def set_desired_height(self, h_d_m: float) -> None:
+        self._planner.set_desired_height(h_d_m)
 
 
 PI4_SLOWDOWN = 10.0
@@ -145,9 +178,11 @@ def _config(scenario: Scenario, port: int, log_dir: Path, **control: Any) -> dic
     return doc
 
 
-def pymavlink_floor(cycles: int = 2000) -> dict[str, float]:
+def pymavlink_floor(cycles: int = 2000, blocks: int = 5) -> dict[str, Any]:
     """Microseconds per cycle for pymavlink to parse one cycle's inputs (11 DISTANCE_SENSOR,
-    ATTITUDE, GLOBAL_POSITION_INT) and pack one SET_POSITION_TARGET_GLOBAL_INT."""
+    ATTITUDE, GLOBAL_POSITION_INT) and pack one SET_POSITION_TARGET_GLOBAL_INT: the median
+    over `blocks` blocks of the cycles (`blocks_us`), so a burst of load from elsewhere on
+    the machine during one block does not move the floor."""
     tx = mavlink.MAVLink(None, srcSystem=1, srcComponent=1)
     tx.robust_parsing = True
     frames = [
@@ -162,44 +197,73 @@ def pymavlink_floor(cycles: int = 2000) -> dict[str, float]:
     rx = mavlink.MAVLink(None, srcSystem=2, srcComponent=191)
     out = mavlink.MAVLink(None, srcSystem=1, srcComponent=191)
     parsed = 0
-    t0 = time.perf_counter_ns()
-    for k in range(cycles):
-        for f in frames:
-            msgs = rx.parse_buffer(f)
-            parsed += len(msgs) if msgs else 0
-        out.set_position_target_global_int_encode(
-            k, 1, 1, 6, 0x9C0, 473977420, 85455940, 2.0, 0.5, 0.1, 0.0, 0.0, 0.0, 0.0, 1.5, 0.0
-        ).pack(out)
-    per_cycle_us = (time.perf_counter_ns() - t0) / cycles / 1e3
-    if parsed != cycles * len(frames):
-        raise RuntimeError(f"parsed {parsed} messages, expected {cycles * len(frames)}")
-    return {"per_cycle_us": per_cycle_us, "messages_per_cycle": len(frames) + 1}
+    per_block = max(cycles // blocks, 1)
+    blocks_us = []
+    for b in range(blocks):
+        t0 = time.perf_counter_ns()
+        for k in range(b * per_block, (b + 1) * per_block):
+            for f in frames:
+                msgs = rx.parse_buffer(f)
+                parsed += len(msgs) if msgs else 0
+            out.set_position_target_global_int_encode(
+                k, 1, 1, 6, 0x9C0, 473977420, 85455940, 2.0, 0.5, 0.1, 0.0, 0.0, 0.0, 0.0, 1.5, 0.0
+            ).pack(out)
+        blocks_us.append((time.perf_counter_ns() - t0) / per_block / 1e3)
+    if parsed != blocks * per_block * len(frames):
+        raise RuntimeError(f"parsed {parsed} messages, expected {blocks * per_block * len(frames)}")
+    return {
+        "per_cycle_us": float(np.median(blocks_us)),
+        "blocks_us": blocks_us,
+        "messages_per_cycle": len(frames) + 1,
+    }
 
 
 def service_parts(cycles: int = 2000) -> dict[str, float]:
     """Microseconds per cycle of the service's own work on one cycle's inputs, in process,
-    part by part (the planner's step is bench/planner.py's): the codec (the service's
-    `MavCodec` decoding the 13 frames and encoding a setpoint), telemetry validation of the
-    13 messages, pairing the ranges with the attitude of their time, the geodesy of a cycle
-    (position to ENU, setpoint to geodetic) and the flight-log record's encoding."""
+    part by part (the planner's step is measured in the real-time run): the codec (the
+    service's `MavCodec` decoding the 13 frames and encoding a setpoint), telemetry
+    validation of the 13 messages, pairing the ranges with the attitude of their time, the
+    geodesy of a cycle (position to ENU, setpoint to geodetic) and the flight-log record's
+    encoding. The frames are the simulator's: custom orientations with their quaternion,
+    half the readings "nothing", the configured median filter."""
     from companion.geo import GeoPoint, LocalFrame
-    from companion.planner.sensors import mav_orientation_for_boresight
+    from companion.planner.sensors import (
+        MAV_SENSOR_ROTATION_CUSTOM,
+        mav_orientation_for_boresight,
+        quaternion_from_boresight_frd,
+    )
     from companion.service.codec import MavCodec
-    from companion.service.flightlog import dumps_record
+    from companion.service.flightlog import dumps_record, floats
     from companion.service.setpoints import SetpointFrame, position_target
     from companion.service.telemetry import Telemetry
 
     scenario = load_scenario(PAPER)
-    table = service_config(scenario, 14540, np.zeros(2), Path(".")).sensor_table()
+    cfg = service_config(scenario, 14540, np.zeros(2), Path("."))
+    table = cfg.sensor_table()
     tx = mavlink.MAVLink(None, srcSystem=1, srcComponent=1)
-    orient = [mav_orientation_for_boresight(s.boresight_frd) for s in table.specs]
+    # each sensor as the simulator sends it: its orientation, the quaternion of a custom one,
+    # its limits in cm; every other sensor sees nothing (ArduPilot: max + 1 m), the others
+    # a distance that drifts as in flight
+    wire = []
+    for spec in table.specs:
+        orientation = mav_orientation_for_boresight(spec.boresight_frd)
+        q = [0.0] * 4
+        if orientation == MAV_SENSOR_ROTATION_CUSTOM:
+            q = [float(v) for v in quaternion_from_boresight_frd(spec.boresight_frd)]
+        lo, hi = round(spec.min_range_m * 100), round(spec.max_range_m * 100)
+        wire.append((spec.sensor_id, orientation, q, lo, hi))
 
     def frames(k: int) -> list[bytes]:
         tb = 1000 + 20 * k
-        out = [
-            tx.distance_sensor_encode(tb, 10, 1200, 350, 0, s.sensor_id, orient[i], 0).pack(tx)
-            for i, s in enumerate(table.specs)
-        ]
+        out = []
+        for i, (sid, orientation, q, lo, hi) in enumerate(wire):
+            drift = 0.5 + 0.4 * math.sin(0.02 * k + i)
+            cm = hi + 100 if i % 2 == 0 else int(lo + (hi - lo) * drift)
+            out.append(
+                tx.distance_sensor_encode(
+                    tb, lo, hi, cm, 0, sid, orientation, 0, 0.0, 0.0, q, 0
+                ).pack(tx)
+            )
         out.append(tx.attitude_encode(tb, 0.01, -0.02, 1.5, 0.0, 0.0, 0.0).pack(tx))
         lat = 473977420 + k
         out.append(
@@ -208,18 +272,13 @@ def service_parts(cycles: int = 2000) -> dict[str, float]:
         return out
 
     inputs = [frames(k) for k in range(cycles)]
-    codec, tel = MavCodec(), Telemetry(table)
+    codec = MavCodec()
+    tel = Telemetry(table, median_samples=cfg.failsafe.range_median_samples)
     plane = LocalFrame(GeoPoint(47.397742, 8.545594, 488.0))
     rng = np.random.default_rng(0)
-    record = {
-        "type": "cycle", "t": 1.0, "health": "active", "own": "engaged", "verdict": "run",
-        "reason": "", "pos": rng.normal(size=3), "rpy": [0.01, -0.02, 1.5],
-        "ranges": rng.uniform(0.0, 12.0, len(table)),
-        "sp": {"p": rng.normal(size=3), "v": rng.normal(size=3), "yaw": 1.5, "pitch": 0.1},
-        "sp_kind": "planner", "decision": "follow", "mode": "nominal", "side": "none",
-        "min_range": 3.5, "phi_star": 0.2, "phi_star_threshold": 0.5, "phi_d": 0.1,
-        "v_ref": 1.0, "replanned": False, "finished": False, "events": [],
-    }  # fmt: skip
+    obstacles = len(table.obstacle_index)
+    pos_enu, sp_p, sp_v = rng.normal(size=3), rng.normal(size=3), rng.normal(size=3)
+    phi_star, threshold = rng.normal(size=obstacles), rng.uniform(size=obstacles)
     t = {"codec": 0, "telemetry": 0, "pairing": 0, "geodesy": 0, "flight_log": 0}
     accepted = 0
     for k, fs in enumerate(inputs):
@@ -242,6 +301,17 @@ def service_parts(cycles: int = 2000) -> dict[str, float]:
         t3 = time.perf_counter_ns()
         codec.encode(sp)
         t4 = time.perf_counter_ns()
+        # the cycle's record as `ControlCycle` builds it (arrays through `floats`), encoded
+        record = {
+            "type": "cycle", "t": t_rx, "health": "active", "own": "engaged", "verdict": "run",
+            "reason": "", "pos": floats(pos_enu), "rpy": [0.01, -0.02, 1.5],
+            "ranges": floats(tel.range_vector(t_rx, 0.5)),
+            "sp": {"p": floats(sp_p), "v": floats(sp_v), "yaw": 1.5, "pitch": 0.1},
+            "sp_kind": "planner", "decision": "follow", "mode": "nominal", "side": "none",
+            "min_range": 3.5, "phi_star": floats(phi_star),
+            "phi_star_threshold": floats(threshold), "phi_d": 0.1, "v_ref": 1.0,
+            "replanned": False, "finished": False, "events": [],
+        }  # fmt: skip
         dumps_record(record)
         t5 = time.perf_counter_ns()
         t["codec"] += (t1 - t0) + (t4 - t3)
@@ -282,7 +352,17 @@ async def realtime(seconds: float) -> dict[str, Any]:
         with _pinned(service_core), tempfile.TemporaryDirectory(prefix="bench-service-") as tmp:
             doc = _config(scenario, port, Path(tmp), time_source="monotonic", rate_hz=RATE_HZ)
             link = TimedLink("127.0.0.1", port)
-            svc = Service(parse_config(doc), link, notifier=SystemdNotifier({}))
+            planner_cpu = {"step_ns": 0, "steps": 0}
+
+            def timed_planner(*args: Any) -> PlannerLike:
+                return TimedPlanner(default_planner_factory(*args), planner_cpu)
+
+            svc = Service(
+                parse_config(doc),
+                link,
+                planner_factory=timed_planner,
+                notifier=SystemdNotifier({}),
+            )
             task = asyncio.create_task(svc.run())
             try:
                 await _wait(lambda: svc.counters["planner_starts"] >= 1, 90.0, "the planner")
@@ -291,10 +371,15 @@ async def realtime(seconds: float) -> dict[str, Any]:
                 for samples in link.by_type.values():
                     samples.clear()
                 cycles0 = svc.counters["cycles"]
+                step0, steps0 = planner_cpu["step_ns"], planner_cpu["steps"]
+                rx0 = link.rx_cpu_ns
                 cpu0, wall0 = time.process_time(), time.perf_counter()
                 await asyncio.sleep(seconds)
                 cpu1, wall1 = time.process_time(), time.perf_counter()
                 cycles = svc.counters["cycles"] - cycles0
+                step_ns = planner_cpu["step_ns"] - step0
+                steps = planner_cpu["steps"] - steps0
+                rx_ns = link.rx_cpu_ns - rx0
                 setpoints = list(link.setpoints)
                 by_type = {k: [int(v * 1e9) for v in vs] for k, vs in link.by_type.items()}
                 counters = svc.counter_values()
@@ -317,6 +402,9 @@ async def realtime(seconds: float) -> dict[str, Any]:
         "jitter_us": percentiles_us(jitter_ns),
         "cpu_percent": 100.0 * cpu_s / (wall1 - wall0),
         "cpu_per_cycle_us": 1e6 * cpu_s / max(cycles, 1),
+        "planner_steps": steps,
+        "planner_step_per_cycle_us": step_ns / 1e3 / max(cycles, 1),
+        "receive_per_cycle_us": rx_ns / 1e3 / max(cycles, 1),
         "pinned_core": service_core,
         "cycle_overruns": counters.get("service.cycle_overruns", 0),
         "cycles_by_input": counters.get("service.cycles_by_input", 0),
@@ -391,11 +479,32 @@ async def lockstep(hour_s: float, flight_s: tuple[float, float] = (20.0, 120.0))
     return out
 
 
+PART_LABELS = (
+    ("codec", "the service's codec: decode 13 frames + encode 1"),
+    ("telemetry", "telemetry validation of 13 messages"),
+    ("pairing", "ranges paired with the attitude of their time"),
+    ("geodesy", "geodesy of a cycle (position -> ENU, setpoint -> lat/lon)"),
+    ("flight_log", "flight-log record, built and encoded"),
+)
+"""The in-process parts of `service_parts`, in table order."""
+
+
+def rest_us(cpu_per_cycle_us: float, parts: dict[str, float], planner_us: float) -> float:
+    """The service's CPU per cycle not in a measured part: what the event loop, the sockets,
+    the dispatch of messages and the cycle's own bookkeeping cost, plus what the parts cost
+    more in the live process than in a warm loop."""
+    return cpu_per_cycle_us - planner_us - sum(parts[name] for name, _ in PART_LABELS)
+
+
 def run(quick: bool = False) -> Section:
     sec = Section("service over UDP")
-    floor = pymavlink_floor(500 if quick else 2000)
+    before = pymavlink_floor(500 if quick else 2000)
     parts = service_parts(500 if quick else 2000)
     rt = asyncio.run(realtime(8.0 if quick else 30.0))
+    # the floor on both sides of the real-time run, as the median of all its blocks
+    after = pymavlink_floor(500 if quick else 2000)
+    blocks = before["blocks_us"] + after["blocks_us"]
+    floor = {**before, "per_cycle_us": float(np.median(blocks)), "blocks_us": blocks}
     ls = asyncio.run(lockstep(600.0 if quick else 3600.0))
     sec.details.update(
         {"pymavlink_floor": floor, "service_parts": parts, "realtime": rt, "lockstep": ls}
@@ -448,14 +557,37 @@ def run(quick: bool = False) -> Section:
         floor["per_cycle_us"],
         "us",
     )
-    for part, label in (
-        ("codec", "the service's codec: decode 13 frames + encode 1"),
-        ("telemetry", "telemetry validation of 13 messages"),
-        ("pairing", "ranges paired with the attitude of their time"),
-        ("geodesy", "geodesy of a cycle (position -> ENU, setpoint -> lat/lon)"),
-        ("flight_log", "flight-log record encoding"),
-    ):
+    for part, label in PART_LABELS:
         sec.add(f"service.part.{part}_us", f"per cycle, in process: {label}", parts[part], "us")
+    cpu_us, planner_us, rx_us = (
+        rt["cpu_per_cycle_us"],
+        rt["planner_step_per_cycle_us"],
+        rt["receive_per_cycle_us"],
+    )
+    sec.add(
+        "service.part.planner_us",
+        f"per cycle, live: the planner's step ({rt['planner_steps']} steps)",
+        planner_us,
+        "us",
+    )
+    sec.add(
+        "service.part.rest_us",
+        "per cycle: service CPU less the in-process parts and the planner",
+        rest_us(cpu_us, parts, planner_us),
+        "us",
+    )
+    sec.add(
+        "service.live.receive_us",
+        "per cycle, live: receiving 13 datagrams (decode, dispatch, telemetry)",
+        rx_us,
+        "us",
+    )
+    sec.add(
+        "service.live.cycle_rest_us",
+        "per cycle, live: all else (cycle, setpoint, flight log, event loop, sockets)",
+        cpu_us - rx_us - planner_us,
+        "us",
+    )
     sec.add(
         "service.floor_ratio",
         "service CPU per cycle / pymavlink floor",

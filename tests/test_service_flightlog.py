@@ -84,3 +84,29 @@ def test_dumps_record_is_the_same_text_as_cleaning_first() -> None:
         line = dumps_record(rec)
         assert line == json.dumps(clean(rec), separators=(",", ":"))
         assert "NaN" not in line.replace('"NaN"', "") and "Infinity" not in line
+
+
+def test_floats_writes_what_clean_writes() -> None:
+    """A record built with `floats` (as the cycle builds its own) is the same line as the
+    raw record: finite arrays as lists, NaN and inf as null, other values untouched."""
+    import json
+
+    import numpy as np
+
+    from companion.service.flightlog import clean, dumps_record, floats
+
+    arrays = [
+        np.array([1.0, -0.0, 3.25]),
+        np.array([1.0, np.nan, 0.0, np.inf, -np.inf]),
+        np.array([], dtype=np.float64),
+        np.array([0.1, 2e-308], dtype=np.float32),
+    ]
+    for a in arrays:
+        raw = {"ranges": a, "sp": {"p": a}}
+        built = {"ranges": floats(a), "sp": {"p": floats(a)}}
+        assert isinstance(built["ranges"], list)
+        assert dumps_record(built) == dumps_record(raw)
+        assert dumps_record(built) == json.dumps(clean(raw), separators=(",", ":"))
+    # not a 1-D float array: unchanged, left to the encoder
+    for other in (np.arange(3), np.zeros((2, 2)), [1.0, 2.0], 0.5, None, "x"):
+        assert floats(other) is other

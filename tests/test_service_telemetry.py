@@ -123,3 +123,25 @@ def test_distance_sensor_orientation_checked() -> None:
     assert t.update(dist(0, 2, 300, orientation=100), 1.0)
     assert t.counters["sensor_orientation_unverified"] == 1
     np.testing.assert_allclose(t.range_vector(1.0, 0.5), [math.nan, 3.0, 3.0])
+
+
+def test_custom_orientation_checked_per_quaternion_every_time() -> None:
+    """The check of a CUSTOM orientation is remembered per (sensor, quaternion): the same
+    quaternion keeps its verdict, another one is judged afresh, whichever came first."""
+    from companion.planner.sensors import quaternion_from_boresight_frd
+
+    t = tel()
+    good = quaternion_from_boresight_frd(t.sensors.specs[2].boresight_frd).tolist()
+    wrong = quaternion_from_boresight_frd(t.sensors.specs[1].boresight_frd).tolist()
+    for k in range(3):
+        stamp = 1 + 2 * k
+        assert t.update(dist(stamp, 2, 300, orientation=100, q=good), 1.0)
+        assert not t.update(dist(stamp + 1, 2, 300, orientation=100, q=wrong), 1.0)
+    assert t.counters["rejected_sensor_orientation_mismatch"] == 3
+    # the wrong quaternion is wrong for sensor 2 only: it is sensor 1's own
+    assert t.update(dist(7, 1, 300, orientation=100, q=wrong), 1.0)
+    # a sender varying its quaternion stays bounded
+    for k in range(1100):
+        q = [1.0, 0.0, 0.0, k * 1e-9]
+        t.update(dist(10 + k, 2, 300, orientation=100, q=q), 1.0)
+    assert len(t._custom_ok) <= 1025

@@ -22,7 +22,7 @@ from companion.service.autopilot import AutopilotInfo
 from companion.service.clock import Clock
 from companion.service.codec import MAVLinkMessage
 from companion.service.failsafe import Assessment, Failsafe, Limits, Verdict, assess
-from companion.service.flightlog import FlightLogWriter
+from companion.service.flightlog import FlightLogWriter, floats
 from companion.service.host import PlannerHost, finite_setpoint
 from companion.service.identity import Health
 from companion.service.modes import Ownership, OwnState, VehicleMode, is_armed, is_guided, mode_name
@@ -328,14 +328,14 @@ class ControlCycle:
             "own": self.ownership.state.value,
             "verdict": verdict.verdict.value,
             "reason": verdict.reason,
-            "pos": None if state is None else state.position_enu,
+            "pos": None if state is None else floats(state.position_enu),
             "rpy": None if state is None else [state.roll_rad, state.pitch_rad, state.yaw_rad],
-            "ranges": self.tel.range_vector(now, self.limits.sensor_max_age_s),
+            "ranges": floats(self.tel.range_vector(now, self.limits.sensor_max_age_s)),
             "sp": None
             if sp is None
             else {
-                "p": sp.position_enu,
-                "v": sp.velocity_enu,
+                "p": floats(sp.position_enu),
+                "v": floats(sp.velocity_enu),
                 "yaw": sp.yaw_rad,
                 "pitch": sp.pitch_rad,
             },
@@ -344,8 +344,8 @@ class ControlCycle:
             "mode": None if d is None else str(d.mode),
             "side": None if d is None else str(d.side),
             "min_range": None if d is None else d.min_range_m,
-            "phi_star": None if d is None else d.phi_star_rad,
-            "phi_star_threshold": None if d is None else d.threshold_rad,
+            "phi_star": None if d is None else floats(d.phi_star_rad),
+            "phi_star_threshold": None if d is None else floats(d.threshold_rad),
             "phi_d": None if d is None else d.phi_d_rad,
             "v_ref": None if d is None else d.speed_ref_mps,
             "replanned": bool(d.replanned) if d is not None else False,

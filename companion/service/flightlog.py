@@ -79,6 +79,18 @@ def _plain(value: Any) -> Any:
     raise TypeError(f"not JSON serialisable: {type(value).__name__}")
 
 
+def floats(value: Any) -> Any:
+    """A 1-D float array as the list the log writes (non-finite values as None, as `clean`
+    does); anything else unchanged. Records built with it encode without `_plain`'s
+    per-array hook."""
+    if isinstance(value, np.ndarray) and value.ndim == 1 and value.dtype.kind == "f":
+        out: list[Any] = value.tolist()
+        if all(map(math.isfinite, out)):
+            return out
+        return [v if math.isfinite(v) else None for v in out]
+    return value
+
+
 def dumps_record(record: dict[str, Any]) -> str:
     """One compact JSON line, the same text as `json.dumps(clean(record))`: encoded
     directly when every float is finite and every key a str (the usual record), through

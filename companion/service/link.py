@@ -156,6 +156,8 @@ class _UdpLink(Link):
         super().__init__(name)
         self._sock: socket.socket | None = None
         self._loop: asyncio.AbstractEventLoop | None = None
+        self._connected_peer: tuple[str, int] | None = None
+        """The one peer of a connected socket (it receives from nobody else)."""
 
     async def _open_socket(
         self, receiver: Receiver, host: str, port: int, *, connect: bool
@@ -171,6 +173,8 @@ class _UdpLink(Link):
             sock.setblocking(False)
             if connect:
                 sock.connect(addr)
+                peer = sock.getpeername()
+                self._connected_peer = (str(peer[0]), int(peer[1]))
             else:
                 sock.bind(addr)
         except OSError:
@@ -183,16 +187,22 @@ class _UdpLink(Link):
         sock = self._sock
         if sock is None:
             return
+        connected = self._connected_peer
         for _ in range(MAX_DATAGRAMS_PER_WAKE):
             try:
-                data, addr = sock.recvfrom(MAX_DATAGRAM_BYTES + 1)
+                if connected is not None:
+                    # no source address to build per datagram: a connected socket's is known
+                    data, peer = sock.recv(MAX_DATAGRAM_BYTES + 1), connected
+                else:
+                    data, addr = sock.recvfrom(MAX_DATAGRAM_BYTES + 1)
+                    peer = (addr[0], addr[1])
             except (BlockingIOError, InterruptedError):
                 return
             except OSError as exc:  # ICMP port unreachable from a connected peer, ...
                 self.stats.errors += 1
                 log.debug("%s: %s", self.name, exc)
                 continue
-            self._on_datagram(data, (addr[0], addr[1]))
+            self._on_datagram(data, peer)
             if self._sock is None:  # closed by what the datagram caused
                 return
 

@@ -179,7 +179,7 @@ def pair_ranges(
       time matches no attitude is used (nothing says its attitude differs).
     """
     r = np.array(ranges_m, dtype=np.float64)
-    fresh = [i for i in range(len(r)) if not math.isnan(r[i])]
+    fresh = [i for i, v in enumerate(r.tolist()) if not math.isnan(v)]
     stamped = [stamps_ms[i] for i in fresh if stamps_ms[i] > 0]
     att = history.at(max(stamped)) if stamped else None
     if att is None:

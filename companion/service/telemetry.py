@@ -27,6 +27,7 @@ from __future__ import annotations
 import bisect
 import logging
 import math
+import operator
 from collections import Counter, deque
 from dataclasses import dataclass
 
@@ -188,6 +189,11 @@ def _distance_m(last: Position, lat: float, lon: float, alt: float) -> float:
     return math.hypot(d, alt - last.alt_amsl_m)
 
 
+def _norm3(v: tuple[float, float, float]) -> float:
+    """Euclidean length of a 3-vector."""
+    return math.sqrt(v[0] * v[0] + v[1] * v[1] + v[2] * v[2])
+
+
 def _haversine_m(lat1: float, lon1: float, lat2: float, lon2: float) -> float:
     p1, p2 = math.radians(lat1), math.radians(lat2)
     dp, dl = p2 - p1, math.radians(lon2 - lon1)
@@ -223,8 +229,9 @@ class Telemetry:
         self.jumps_accepted = 0
         self.last_jump_enu = np.zeros(3)
         """The last accepted jump: the position minus where the reported velocity put it."""
-        self._residual_ned = np.zeros(3)
-        self._jump_ned = np.zeros(3)
+        self._residual_ned = (0.0, 0.0, 0.0)
+        """The last position's offset from the velocity-predicted path (NED m)."""
+        self._jump_ned = (0.0, 0.0, 0.0)
         """Position jumps accepted because they persisted (estimator resets): the position
         the loop works in has moved, so plans and holds made before it are void."""
         self.counters: Counter[str] = Counter()
@@ -232,6 +239,8 @@ class Telemetry:
         self._orientation_ok: dict[tuple[int, int], bool | None] = {}
         """Per (table index, orientation): the orientation checked against the configured
         one (None: unknown orientation). Per-message work done once per sensor."""
+        self._custom_ok: dict[tuple[int, tuple[float, ...]], bool | None] = {}
+        """The same for MAV_SENSOR_ROTATION_CUSTOM, per (table index, quaternion)."""
         self._order_keys = [f"DISTANCE_SENSOR.{i}" for i in range(len(sensors))]
         self._limits_seen: dict[tuple[int, int, int], str] = {}
         self._detects: dict[tuple[int, float], bool] = {}
@@ -256,9 +265,10 @@ class Telemetry:
         self.ranges: list[RangeReading | None] = [None] * len(self.sensors)
         self._probe = np.full(len(self.sensors), math.nan)
         """One reading at a time through the planner's detection rule."""
-        self._history: list[deque[RangeReading]] = [
+        self._history: list[deque[tuple[float, RangeReading]]] = [
             deque(maxlen=max(1, self.median_samples)) for _ in range(len(self.sensors))
         ]
+        """Per sensor: its last readings, each with its median order (0.0: +inf)."""
         self._last_boot_ms: dict[str, int] = {}
         self._clock_ref: float | None = None
         self._last_rx: dict[str, float] = {}
@@ -280,15 +290,17 @@ class Telemetry:
             return None
         return kind if handler(self, msg, t_rx) else None
 
-    def _count(self, name: str, level: int = logging.INFO, detail: str = "") -> None:
-        """Count `name`; log it the 1st, 10th, 100th, ... time (bounded log volume)."""
+    def _count(self, name: str, level: int = logging.INFO, detail: str = "", *args: object) -> None:
+        """Count `name`; log it the 1st, 10th, 100th, ... time (bounded log volume). `detail`
+        is a %-format of `args`, formatted only when the line is logged (most inputs that
+        are counted, e.g. a reading of nothing, are not)."""
         n = self.counters[name] + 1
         self.counters[name] = n
         if n in LOG_AT_COUNTS:
-            log.log(level, "input.%s: %d so far%s", name, n, detail)
+            log.log(level, "input.%s: %d so far" + detail, name, n, *args)
 
-    def _reject(self, what: str, detail: str = "") -> bool:
-        self._count(f"rejected_{what}", logging.WARNING, detail and f" ({detail})")
+    def _reject(self, what: str, detail: str = "", *args: object) -> bool:
+        self._count(f"rejected_{what}", logging.WARNING, detail and f" ({detail})", *args)
         return False
 
     def _in_order(self, key: str, time_boot_ms: int, t_rx: float) -> bool:
@@ -323,7 +335,8 @@ class Telemetry:
         back = last is not None and last - time_boot_ms > REBOOT_BACKSTEP_MS
         if ahead or back:
             return self._clock_evidence(key, time_boot_ms, off, t_rx, back)
-        self._clock_candidates.clear()
+        if self._clock_candidates:
+            self._clock_candidates.clear()
         if last is not None and time_boot_ms <= last:
             self._count("out_of_order" if time_boot_ms < last else "duplicate")
             return False
@@ -393,16 +406,16 @@ class Telemetry:
         c = self._candidate(key, off, back)
         if c is None:
             where = "back" if back else "ahead"
-            self._count("time_boot_suspect", logging.WARNING, f" ({key} {where})")
+            self._count("time_boot_suspect", logging.WARNING, " (%s %s)", key, where)
             return False
         if back:
-            self._count("time_boot_backwards", logging.WARNING, f" ({key})")
+            self._count("time_boot_backwards", logging.WARNING, " (%s)", key)
             self.reboots += 1
             counters, reboots = self.counters, self.reboots
             self.reset()
             self.counters, self.reboots = counters, reboots
         else:
-            self._count("time_boot_resync", logging.WARNING, f" ({key})")
+            self._count("time_boot_resync", logging.WARNING, " (%s)", key)
             self._clear_stamps()
         # the median: one odd stamp among the evidence does not set the clock
         self._clock_ref = c.median_ms()
@@ -426,14 +439,14 @@ class Telemetry:
         r, p, y = float(msg.roll), float(msg.pitch), float(msg.yaw)
         rates = (float(msg.rollspeed), float(msg.pitchspeed), float(msg.yawspeed))
         if not all(math.isfinite(v) for v in (r, p, y, *rates)):
-            return self._reject("attitude_nonfinite", f"roll {r} pitch {p} yaw {y}")
+            return self._reject("attitude_nonfinite", "roll %s pitch %s yaw %s", r, p, y)
         if abs(r) > math.pi + 1e-3 or abs(p) > math.pi / 2 + 1e-3 or abs(y) > 2 * math.pi + 1e-3:
-            return self._reject("attitude_range", f"roll {r} pitch {p} yaw {y}")
+            return self._reject("attitude_range", "roll %s pitch %s yaw %s", r, p, y)
         if not self._in_order("ATTITUDE", int(msg.time_boot_ms), t_rx):
             return False
         self.attitude = Attitude(r, p, y, int(msg.time_boot_ms), t_rx)
         if msg.time_boot_ms and not self.attitudes.add(int(msg.time_boot_ms), r, p, y):
-            self._count("attitude_rate_untrusted", logging.WARNING, f" (t {msg.time_boot_ms} ms)")
+            self._count("attitude_rate_untrusted", logging.WARNING, " (t %s ms)", msg.time_boot_ms)
         return True
 
     def _global_position(self, msg: MAVLinkMessage, t_rx: float) -> bool:
@@ -442,7 +455,7 @@ class Telemetry:
         if not valid_lat_lon(lat, lon) or not (
             -1_000.0 <= alt <= 50_000.0 and -10_000.0 <= rel <= 50_000.0
         ):
-            return self._reject("position_range", f"lat {lat} lon {lon} alt {alt} rel {rel}")
+            return self._reject("position_range", "lat %s lon %s alt %s rel %s", lat, lon, alt, rel)
         if not self._in_order("GLOBAL_POSITION_INT", int(msg.time_boot_ms), t_rx):
             return False
         vel = (msg.vx * 0.01, msg.vy * 0.01, msg.vz * 0.01)
@@ -452,11 +465,11 @@ class Telemetry:
                 self._jump_since = t_rx
                 self._jump_dt = max(self._dt(last, msg.time_boot_ms, t_rx), 0.05)
                 # measured on its first sample, where the velocity prediction is best
-                self._jump_ned = self._residual_ned.copy()
+                self._jump_ned = self._residual_ned
             if t_rx - self._jump_since < self.jump_accept_s:
                 self._unaccept_position(last)
                 return self._reject("position_jump")
-            size = float(np.linalg.norm(self._jump_ned))
+            size = _norm3(self._jump_ned)
             if size > self.max_accepted_jump_m:
                 # too big to be an estimator reset the plan can follow: a fault, never accepted
                 self._unaccept_position(last)
@@ -467,7 +480,7 @@ class Telemetry:
                     log.error("%s: not accepted; stopped", self.jump_fault)
                 return self._reject("position_jump_fault")
             self._count("position_jump_accepted", logging.WARNING)
-            n, e, d = (float(v) for v in self._jump_ned)
+            n, e, d = self._jump_ned
             self.last_jump_enu = np.array([e, n, -d])
             self.jumps_accepted += 1
             log.warning(
@@ -495,12 +508,16 @@ class Telemetry:
         gap at the start of a jump episode: rejected samples do not make it grow)."""
         dt = self._dt(last, time_boot_ms, t_rx)
         north, east = _north_east_m(last.lat_deg, last.lon_deg, lat, lon)
-        moved = np.array([north, east, last.alt_amsl_m - alt])  # NED
-        expected = 0.5 * (np.asarray(last.velocity_ned_mps) + np.asarray(vel_ned)) * dt
-        self._residual_ned = moved - expected
+        # plain floats: a 3-vector costs more as numpy arrays than as arithmetic
+        v0, v1 = last.velocity_ned_mps, vel_ned
+        self._residual_ned = (
+            north - 0.5 * (v0[0] + v1[0]) * dt,
+            east - 0.5 * (v0[1] + v1[1]) * dt,
+            (last.alt_amsl_m - alt) - 0.5 * (v0[2] + v1[2]) * dt,
+        )
         if _distance_m(last, lat, lon, alt) > self.max_speed_mps * max(dt, 0.05):
             return True
-        residual = float(np.linalg.norm(self._residual_ned))
+        residual = _norm3(self._residual_ned)
         dt_accel = dt if self._jump_since is None else min(dt, self._jump_dt)
         return residual > self.max_jump_m + 0.5 * MAX_ACCEL_MPS2 * dt_accel * dt_accel
 
@@ -542,38 +559,43 @@ class Telemetry:
                 self._boresight_cache[orientation] = None
         return self._boresight_cache[orientation]
 
+    def _agrees(self, index: int, orientation: int, quaternion: list[float]) -> bool | None:
+        """The message's orientation (and quaternion) against the configured boresight of
+        sensor `index`: within 5 degrees, or None when it names no direction."""
+        boresight = self._msg_boresight(orientation, quaternion)
+        if boresight is None:
+            return None
+        return float(boresight @ self._expected_boresight[index]) >= ORIENTATION_TOLERANCE_COS
+
     def _distance_sensor(self, msg: MAVLinkMessage, t_rx: float) -> bool:
         index = self.sensors.index_of_id.get(int(msg.id))
         if index is None:
-            return self._reject("sensor_unknown_id", f"id {int(msg.id)}")
+            return self._reject("sensor_unknown_id", "id %d", int(msg.id))
         orientation = int(msg.orientation)
         if orientation == MAV_SENSOR_ROTATION_CUSTOM:
-            boresight = self._msg_boresight(orientation, list(getattr(msg, "quaternion", [])))
-            ok = (
-                None
-                if boresight is None
-                else float(boresight @ self._expected_boresight[index]) >= ORIENTATION_TOLERANCE_COS
-            )
+            quaternion = tuple(getattr(msg, "quaternion", ()))
+            qkey = (index, quaternion)
+            if qkey in self._custom_ok:
+                ok = self._custom_ok[qkey]
+            else:
+                if len(self._custom_ok) > 1024:  # a sender varying it: stay bounded
+                    self._custom_ok.clear()
+                ok = self._custom_ok[qkey] = self._agrees(index, orientation, list(quaternion))
         else:
             okey = (index, orientation)
-            if okey not in self._orientation_ok:
-                boresight = self._msg_boresight(orientation, [])
-                self._orientation_ok[okey] = (
-                    None
-                    if boresight is None
-                    else float(boresight @ self._expected_boresight[index])
-                    >= ORIENTATION_TOLERANCE_COS
-                )
-            ok = self._orientation_ok[okey]
+            if okey in self._orientation_ok:
+                ok = self._orientation_ok[okey]
+            else:
+                ok = self._orientation_ok[okey] = self._agrees(index, orientation, [])
         if ok is None:
             if orientation != MAV_SENSOR_ROTATION_CUSTOM:
                 return self._reject(
-                    "sensor_orientation_unknown", f"id {int(msg.id)} orientation {orientation}"
+                    "sensor_orientation_unknown", "id %d orientation %d", int(msg.id), orientation
                 )
             self._count("sensor_orientation_unverified")
         elif not ok:
             return self._reject(
-                "sensor_orientation_mismatch", f"id {int(msg.id)} orientation {orientation}"
+                "sensor_orientation_mismatch", "id %d orientation %d", int(msg.id), orientation
             )
         if not self._in_order(self._order_keys[index], int(msg.time_boot_ms), t_rx):
             return False
@@ -592,14 +614,14 @@ class Telemetry:
             if self._limit_problem.get(index) != problem:
                 self._limit_problem[index] = problem
                 self.notices.append(f"sensor {spec.sensor_id} refused: {problem}")
-            return self._reject("sensor_limits", f"sensor {spec.sensor_id}: {problem}")
+            return self._reject("sensor_limits", "sensor %s: %s", spec.sensor_id, problem)
         self._limit_problem.pop(index, None)
         # 65535 is MAVLink's "unknown"; 0 < d < min is "too close to measure", not "nothing":
         # something is there, at most at the minimum range. Everything else that means
         # "nothing detected" is the planner's rule (`SensorTable.valid`), applied here.
         d = 0.0 if cur == UINT16_MAX else cur * 0.01
         if 0.0 < d < lo:
-            self._count("range_below_min", detail=f" (sensor {spec.sensor_id}: {cur} cm)")
+            self._count("range_below_min", logging.INFO, " (sensor %s: %d cm)", spec.sensor_id, cur)
             d = lo
         dkey = (index, d)
         detects = self._detects.get(dkey)
@@ -612,7 +634,7 @@ class Telemetry:
             probe[index] = math.nan
         if not detects:
             why = "range_none" if d <= 0.0 else "range_at_max"
-            self._count(why, detail=f" (sensor {spec.sensor_id}: {cur} cm)")
+            self._count(why, logging.INFO, " (sensor %s: %d cm)", spec.sensor_id, cur)
             d = 0.0
         raw = RangeReading(d, int(msg.time_boot_ms), t_rx)
         self.ranges[index] = self._filtered(index, raw)
@@ -626,13 +648,15 @@ class Telemetry:
         if n <= 1:
             return reading
         history = self._history[index]
-        if history and reading.t_rx - history[-1].t_rx > MEDIAN_GAP_S:
+        if history and reading.t_rx - history[-1][1].t_rx > MEDIAN_GAP_S:
             history.clear()
-        history.append(reading)
+        d = reading.distance_m
+        history.append((d if d > 0 else math.inf, reading))
         if len(history) < n:
             return reading
-        ordered = sorted(history, key=lambda r: r.distance_m if r.distance_m > 0 else math.inf)
-        median = ordered[n // 2]
+        median = sorted(history, key=_FIRST)[n // 2][1]
+        if median is reading:
+            return reading
         if median.distance_m != reading.distance_m:
             self._count("range_filtered")
         # the median keeps the stamp of the reading it is (its attitude is that time's); its
@@ -685,6 +709,8 @@ class Telemetry:
             if reading is None or now - reading.t_rx > max_age_s
         ]
 
+
+_FIRST = operator.itemgetter(0)
 
 _HANDLERS = {
     "HEARTBEAT": Telemetry._heartbeat,
