@@ -284,8 +284,6 @@ def detour_search(
     tails: dict[float, list[CubicBezier]] = {}  # the route after each rejoin point tried
     yield
     for cost, w, side, leave, transition, through_base, keep_m in options:
-        required = min(keep_m - 0.05, max(params.d_min_m, start_clear - 0.05))
-        start_floor = start_clear - 0.05 if start_clear - 0.05 < required else None
         built = _build(
             route, poly, request, params, s0, leave, transition, s_b, w, keep_m, tails, through_base
         )
@@ -296,15 +294,8 @@ def detour_search(
         if max_abs_curvature(detour_segments) > 1.0 / params.min_turn_radius_m * 1.001:
             yield
             continue
-        tail_len = 0.0
-        tail_check: list[CubicBezier] = []
-        for seg in tail:
-            if tail_len > params.lookahead_m:
-                break
-            tail_check.append(seg)
-            tail_len += seg.length
-        if comes_closer(
-            [*detour_segments, *tail_check], obstacles, required, inflation, start_floor
+        if not keeps_clear(
+            detour_segments, tail, obstacles, inflation, keep_m, start_clear, params
         ):
             yield
             continue
@@ -355,6 +346,30 @@ def _offsets(
                 candidates.append((cost, w, side))
     candidates.sort(key=lambda c: (c[0], c[1]))
     return candidates
+
+
+def keeps_clear(
+    segments: list[CubicBezier],
+    tail: list[CubicBezier],
+    obstacles_xy: FloatArray,
+    inflation_m: FloatArray,
+    keep_m: float,
+    start_clear_m: float,
+    params: PlannerParams,
+) -> bool:
+    """The clearance check of a new path (`comes_closer`): its own segments, then the route
+    tail it joins as far as the look-ahead, keep keep_m - 0.05 (at least D_min) from every
+    point; a start already closer than that (start_clear_m) must move out."""
+    required = min(keep_m - 0.05, max(params.d_min_m, start_clear_m - 0.05))
+    floor = start_clear_m - 0.05 if start_clear_m - 0.05 < required else None
+    ahead: list[CubicBezier] = []
+    along = 0.0
+    for seg in tail:
+        if along > params.lookahead_m:
+            break
+        ahead.append(seg)
+        along += seg.length
+    return not comes_closer([*segments, *ahead], obstacles_xy, required, inflation_m, floor)
 
 
 def comes_closer(

@@ -9,7 +9,7 @@ turns on the spot and goes on, as it does after backing out. The legs end at the
 where the route's tail takes over (one more stop to turn onto it).
 
 Unseen space counts as free: the way is a proposal from what is known, checked like every
-correction (`avoidance.comes_closer`: D_m, or the re-plan distance in a narrow place, from
+correction (`avoidance.keeps_clear`: D_m, or the re-plan distance in a narrow place, from
 every remembered point along the legs and the tail's look-ahead), and re-planned as new
 points come in. Pure and deterministic; searched in work units like the other searches.
 Frame: local ENU x, y metres.
@@ -25,7 +25,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from companion.planner.avoidance import AvoidanceRequest, comes_closer, min_distance
+from companion.planner.avoidance import AvoidanceRequest, keeps_clear, min_distance
 from companion.planner.bezier import CubicBezier
 from companion.planner.params import PlannerParams
 from companion.planner.path import Path, project
@@ -86,17 +86,10 @@ def grid_search(
                 continue
             corners = yield from _pull_taut(grid, cells, start, goal)
             plan = _plan(route, k, corners)
-            required = min(keep_m - 0.05, max(params.d_min_m, start_clear - 0.05))
-            floor = start_clear - 0.05 if start_clear - 0.05 < required else None
             legs = list(plan.path.segments[: len(corners) - 1])
-            tail_check, tail_len = [], 0.0
-            for seg in plan.path.segments[len(corners) - 1 :]:
-                if tail_len > params.lookahead_m:
-                    break
-                tail_check.append(seg)
-                tail_len += seg.length
+            tail = list(plan.path.segments[len(corners) - 1 :])
             yield
-            if not comes_closer([*legs, *tail_check], obstacles, required, inflation, floor):
+            if keeps_clear(legs, tail, obstacles, inflation, keep_m, start_clear, params):
                 return plan
     return None
 
