@@ -35,6 +35,9 @@ class PlannerParams:
         then overshooting a decelerating setpoint): X_d brakes v * reaction_time_s earlier,
         and further by how far the vehicle is measured ahead of X_d along the path. 0: the
         paper's ideal stop exactly at the trigger.
+    shape_terrain: raise eq. (3)'s aim point for the ground's slope across the heading and
+        its curvature along it, from a fit of the recent surface hits (`ground`); False: the
+        paper's eqs (3)-(4) alone.
     """
 
     h_d_m: float = 2.0
@@ -53,6 +56,7 @@ class PlannerParams:
     paper_delta: float = 1e-4
     goal_tolerance_m: float = 0.05
     reaction_time_s: float = 0.4
+    shape_terrain: bool = True
 
     def __post_init__(self) -> None:
         positive = (

@@ -44,6 +44,7 @@ from companion.planner.avoidance import (
 from companion.planner.decision import chord_steepness, decide, steepness, thresholds
 from companion.planner.frames import wrap_pi
 from companion.planner.gridpath import GridPlan, grid_search
+from companion.planner.ground import GroundPoints, offsets_from_fit
 from companion.planner.memory import ObstacleMemory
 from companion.planner.params import ArcMethod, PlannerParams
 from companion.planner.path import Path
@@ -110,6 +111,10 @@ _GROUND_HOLD_RANGE = 4.0
 _RETRY_BLOCKED_CYCLES = 20
 _MIN_CHORD_M = 0.5
 _LOCAL_CHORD_M = 2.5
+# Ground points within this horizontal radius of the vehicle shape its aim (`ground`).
+_GROUND_FIT_RADIUS_M = 3.0
+# The most the ground's shape may move eq. (3)'s aim point up or down, metres.
+_GROUND_LIFT_MAX_M = 0.5
 """Longest horizontal chord whose slope is taken as the slope at its upper end."""
 """Shortest horizontal chord whose slope counts (`chord_steepness`): over shorter ones a
 few centimetres of range noise would read as a steep slope."""
@@ -272,6 +277,7 @@ class Planner:
         self._track: deque[tuple[float, float]] = deque(maxlen=_TRACK_MAX_POINTS)
         self._track.append((float(start[0]), float(start[1])))
         self._last_ground: dict[Group, FloatArray] = {}
+        self._ground_store = GroundPoints()
         self._sight_key: tuple[float, float] | None = None
         self._failed_attempt: tuple[int, int, int, bool] | None = None
         self._failed_cycle = 0
@@ -361,11 +367,10 @@ class Planner:
         x_h1 = self._ground_point(Group.SURFACE_FORWARD, points, surface, state)
         x_h2 = self._ground_point(Group.SURFACE_BACK, points, surface, state)
         surface_valid = x_h1 is not None and x_h2 is not None
-        phi_d = 0.0  # no ground in view: hold the height
+        x_z: FloatArray | None = None
         if x_h1 is not None and x_h2 is not None:
             try:
                 x_z = aim_point(x_h1, x_h2, state.yaw_rad, self._h_d)
-                phi_d = desired_pitch(x_z, self._xd_prev, params.phi_max_rad)
             except ValueError:
                 surface_valid = False
 
@@ -383,6 +388,10 @@ class Planner:
             steep_xyz, steep_inflation = self._sector_arcs(
                 state.position_enu, rot, ranges, valid, steep_xyz, steep_inflation
             )
+        phi_d = 0.0  # no ground in view: hold the height
+        if x_z is not None:
+            self._remember_ground(points, surface, len(steep_xyz) > 0)
+            phi_d = desired_pitch(self._shaped_aim(x_z, state), self._xd_prev, params.phi_max_rad)
         decision = decide(phi_star, self._thresholds)
         self._carve(state, rot, ranges, valid)
         if len(steep_xyz):
@@ -500,6 +509,29 @@ class Planner:
         if (along > 0.0) == ahead and math.hypot(*rel) <= _GROUND_HOLD_RANGE * self._h_d:
             return held
         return None
+
+    def _remember_ground(self, points: FloatArray, surface: dict[Group, int], steep: bool) -> None:
+        """This cycle's surface hits that are not too steep to climb into the ground store."""
+        skip = set(self._steep_rows.tolist()) if steep else set()
+        for i in surface.values():
+            if i not in skip:
+                x, y, z = points[i].tolist()
+                self._ground_store.add(i, x, y, z)
+
+    def _shaped_aim(self, x_z: FloatArray, state: VehicleState) -> FloatArray:
+        """Eq. (3)'s aim point raised for the slope across the heading and for the lag over
+        curved relief (`ground.offsets_from_fit`), when the ground store fits a surface."""
+        if not self.params.shape_terrain:
+            return x_z
+        px, py = float(state.position_enu[0]), float(state.position_enu[1])
+        fit = self._ground_store.fit(px, py, _GROUND_FIT_RADIUS_M)
+        if fit is None:
+            return x_z
+        zx, zy, zz = x_z.tolist()
+        lead = math.hypot(zx - float(self._xd_prev[0]), zy - float(self._xd_prev[1]))
+        side, bend = offsets_from_fit(fit, zx, zy, state.yaw_rad, self._h_d, lead)
+        lift = min(max(side + bend, -_GROUND_LIFT_MAX_M), _GROUND_LIFT_MAX_M)
+        return np.array([zx, zy, zz + lift])
 
     def _ground_points(
         self, points: FloatArray, surface: dict[Group, int], state: VehicleState
@@ -765,6 +797,15 @@ class Planner:
             return False
         if self._mode is PathMode.RETREAT and not self._blocked:
             return False  # backing out along the covered track: it is known to be free
+        if (
+            not self._blocked
+            and self._v <= speed.STOPPED_MPS
+            and abs(wrap_pi(self._path_heading() - self._yaw)) > _YAW_ALIGNED_RAD
+        ):
+            # Turning on the spot onto a new path: the vehicle does not move, and what the
+            # turning sensors add (a proximity sector's arc sweeps with them) would flip the
+            # choice to the other side and back. The path is checked once aligned.
+            return False
         nearby, nearby_inflation = self._memory.near_with_inflation(here, radius)
         # Points that the conflicting part of the path comes too close to.
         bad = look.points[conflict_samples]

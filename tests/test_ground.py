@@ -1,0 +1,93 @@
+"""The ground store and its quadric fit (companion.planner.ground), and what it does to
+terrain following in closed loop."""
+
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from companion.harness import metrics as metrics_mod
+from companion.harness.closed_loop import run
+from companion.planner.ground import GroundFit, GroundPoints, offsets_from_fit
+from companion.sim.scenario import load_scenario
+from companion.sim.world import World
+
+SCENARIOS = Path(__file__).parent.parent / "config" / "scenarios"
+
+
+def _store(fn, xs: np.ndarray, ys: np.ndarray) -> GroundPoints:  # type: ignore[no-untyped-def]
+    store = GroundPoints(capacity=len(xs), spacing_m=0.01)
+    for k, (x, y) in enumerate(zip(xs.tolist(), ys.tolist(), strict=True)):
+        store.add(k, x, y, fn(x, y))
+    return store
+
+
+def test_fit_recovers_a_tilted_plane() -> None:
+    rng = np.random.default_rng(3)
+    xs, ys = rng.uniform(-3, 3, 40) + 10.0, rng.uniform(-3, 3, 40) - 5.0
+    store = _store(lambda x, y: 1.0 + 0.3 * x - 0.2 * y, xs, ys)
+    fit = store.fit(10.0, -5.0, 4.0)
+    assert fit is not None
+    gx, gy = fit.gradient(10.5, -4.5)
+    assert gx == pytest.approx(0.3, abs=1e-3)
+    assert gy == pytest.approx(-0.2, abs=1e-3)
+    assert fit.second_along(0.7) == pytest.approx(0.0, abs=1e-3)
+
+
+def test_fit_measures_curvature_along_a_heading() -> None:
+    """A ridge z = -x^2 / (2 R) along y: second derivative -1/R across it, 0 along it."""
+    r = 10.0
+    rng = np.random.default_rng(5)
+    xs, ys = rng.uniform(-3, 3, 60), rng.uniform(-3, 3, 60)
+    fit = _store(lambda x, y: -x * x / (2 * r), xs, ys).fit(0.0, 0.0, 4.0)
+    assert fit is not None
+    # The ridge term pulls the curvature a little towards 0; within 10 % here.
+    assert fit.second_along(0.0) == pytest.approx(-1.0 / r, rel=0.1)
+    assert fit.second_along(math.pi / 2) == pytest.approx(0.0, abs=0.01)
+
+
+def test_too_few_points_fit_nothing_and_close_points_are_not_stored_twice() -> None:
+    store = GroundPoints(capacity=16, spacing_m=0.2)
+    for k in range(20):
+        store.add(0, 0.05 * k, 0.0, 0.0)  # 1 m of track: a point every 0.2 m
+    assert len(store) == 5
+    assert store.fit(0.0, 0.0, 3.0) is None
+    for k in range(40):
+        store.add(1, 0.2 * k, 1.0, 0.0)
+    assert len(store) == 16  # the ring keeps the newest
+    assert store.fit(0.0, 0.0, 3.0) is None  # the oldest (near x = 0) have gone
+    assert store.fit(6.0, 1.0, 3.0) is not None
+
+
+def test_offsets_for_a_side_slope_and_a_crest() -> None:
+    h_d = 2.0
+    side_slope = GroundFit(0.0, 0.0, (0.0, 0.0, math.tan(math.radians(20)), 0.0, 0.0, 0.0), 9)
+    side, bend = offsets_from_fit(side_slope, 0.0, 0.0, 0.0, h_d, 2.0)  # heading +x
+    assert side == pytest.approx(h_d / math.cos(math.radians(20)) - h_d)
+    assert bend == pytest.approx(0.0)
+    crest = GroundFit(0.0, 0.0, (0.0, 0.0, 0.0, -0.05, 0.0, 0.0), 9)  # z'' = -0.1 along x
+    side, bend = offsets_from_fit(crest, 0.0, 0.0, 0.0, h_d, 2.0)
+    assert side == pytest.approx(0.0)
+    assert bend == pytest.approx(0.1 * 2.0**2 / 2)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("name", ["smooth-hill", "crease"])
+def test_shaping_holds_the_height_the_paper_alone_does_not(name: str) -> None:
+    """Over a hill of radius of curvature 12 m (smooth-hill) and the crease between two
+    hills, |H - H_d| (H the shortest distance to the surface) stays within 0.07 and 0.15 m
+    with the ground's shape; eqs (3)-(4) alone lag by g'' L^2 / 2 and leave more."""
+    path = SCENARIOS / f"{name}.yaml"
+    errors = {}
+    for shape in (True, False):
+        scenario = load_scenario(path)
+        planner = scenario.planner.model_copy(update={"shape_terrain": shape})
+        scenario = scenario.model_copy(update={"planner": planner})
+        world = World.from_config(scenario.world, path.parent)
+        m = metrics_mod.for_run(scenario, world, run(scenario, world))
+        assert m["reached_goal"]
+        errors[shape] = m["max_height_error_m"]
+    limit = 0.07 if name == "smooth-hill" else 0.15
+    assert errors[True] <= limit
+    assert errors[False] > limit
