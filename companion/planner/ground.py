@@ -26,7 +26,7 @@ import numpy as np
 # Ridge weights per coefficient (c0..c5) relative to the number of points: slopes are
 # barely held, curvatures somewhat more, the cross term most (the sensors' cross of points
 # fixes it poorly).
-_RIDGE = np.array([0.0, 1e-3, 1e-3, 0.5, 2.0, 0.5])
+_RIDGE = np.array([0.0, 1e-3, 1e-3, 0.1, 0.5, 0.1])
 _MIN_POINTS = 8
 
 

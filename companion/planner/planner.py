@@ -523,11 +523,13 @@ class Planner:
         curved relief (`ground.offsets_from_fit`), when the ground store fits a surface."""
         if not self.params.shape_terrain:
             return x_z
-        px, py = float(state.position_enu[0]), float(state.position_enu[1])
-        fit = self._ground_store.fit(px, py, _GROUND_FIT_RADIUS_M)
+        zx, zy, zz = x_z.tolist()
+        # About the middle of the stretch eq. (4) steers over: X_d (k-1) to the aim.
+        cx = 0.5 * (zx + float(self._xd_prev[0]))
+        cy = 0.5 * (zy + float(self._xd_prev[1]))
+        fit = self._ground_store.fit(cx, cy, _GROUND_FIT_RADIUS_M)
         if fit is None:
             return x_z
-        zx, zy, zz = x_z.tolist()
         lead = math.hypot(zx - float(self._xd_prev[0]), zy - float(self._xd_prev[1]))
         side, bend = offsets_from_fit(fit, zx, zy, state.yaw_rad, self._h_d, lead)
         lift = min(max(side + bend, -_GROUND_LIFT_MAX_M), _GROUND_LIFT_MAX_M)
