@@ -28,6 +28,10 @@ import numpy as np
 # fixes it poorly).
 _RIDGE = np.array([0.0, 1e-3, 1e-3, 0.1, 0.5, 0.1])
 _MIN_POINTS = 8
+# The local origin of the stored rows moves when a fit is asked for farther than this, metres.
+_REBASE_M = 8.0
+# A fit is redone once this many points have come in since (else when its centre moves).
+_REFIT_POINTS = 2
 
 
 @dataclass(frozen=True, slots=True)
@@ -54,14 +58,25 @@ class GroundFit:
 
 class GroundPoints:
     """The last `capacity` ground points (world ENU, metres), each sensor's stored only once
-    it is spacing_m (horizontally) from the last one it stored."""
+    it is spacing_m (horizontally) from the last one it stored.
 
-    def __init__(self, capacity: int = 96, spacing_m: float = 0.2) -> None:
+    Each point is kept with its row of the quadric's design matrix about a local origin (moved,
+    and the rows recomputed, when a fit is asked for farther than _REBASE_M from it), and the
+    last fit is reused while its centre has moved less than refit_m and fewer than
+    _REFIT_POINTS points have come in: a fit is a 6 x 6 solve, the rest of a cycle is cheaper.
+    """
+
+    def __init__(self, capacity: int = 96, spacing_m: float = 0.2, refit_m: float = 0.1) -> None:
         self._xyz = np.zeros((capacity, 3))
+        self._rows = np.zeros((capacity, 6))
+        self._ox, self._oy = 0.0, 0.0
         self._count = 0
         self._next = 0
         self._spacing2 = spacing_m * spacing_m
+        self._refit2 = refit_m * refit_m
         self._last: dict[int, tuple[float, float]] = {}
+        self._fit: tuple[float, float, float, int, GroundFit | None] | None = None
+        self._added = 0
 
     def __len__(self) -> int:
         return self._count
@@ -72,27 +87,54 @@ class GroundPoints:
         if last is not None and (x - last[0]) ** 2 + (y - last[1]) ** 2 < self._spacing2:
             return
         self._last[key] = (x, y)
-        self._xyz[self._next] = (x, y, z)
-        self._next = (self._next + 1) % len(self._xyz)
+        i = self._next
+        self._xyz[i] = (x, y, z)
+        u, v = x - self._ox, y - self._oy
+        self._rows[i] = (1.0, u, v, u * u, u * v, v * v)
+        self._next = (i + 1) % len(self._xyz)
         self._count = min(self._count + 1, len(self._xyz))
+        self._added += 1
 
     def fit(self, x: float, y: float, radius_m: float) -> GroundFit | None:
         """The quadric through the stored points within radius_m of (x, y), or None when
-        fewer than a handful are there."""
-        pts = self._xyz[: self._count]
-        dx = pts[:, 0] - x
-        dy = pts[:, 1] - y
-        near = dx * dx + dy * dy <= radius_m * radius_m
-        n = int(np.count_nonzero(near))
+        fewer than a handful are there (the last fit while little has changed)."""
+        last = self._fit
+        if (
+            last is not None
+            and last[2] == radius_m
+            and (x - last[0]) ** 2 + (y - last[1]) ** 2 < self._refit2
+            and self._added - last[3] < _REFIT_POINTS
+        ):
+            return last[4]
+        if (x - self._ox) ** 2 + (y - self._oy) ** 2 > _REBASE_M * _REBASE_M:
+            self._rebase(x, y)
+        fit = self._solve(x, y, radius_m)
+        self._fit = (x, y, radius_m, self._added, fit)
+        return fit
+
+    def _rebase(self, x: float, y: float) -> None:
+        """Move the local origin to (x, y) and recompute the stored rows."""
+        self._ox, self._oy = x, y
+        u = self._xyz[:, 0] - x
+        v = self._xyz[:, 1] - y
+        self._rows[:, 1], self._rows[:, 2] = u, v
+        self._rows[:, 3], self._rows[:, 4], self._rows[:, 5] = u * u, u * v, v * v
+
+    def _solve(self, x: float, y: float, radius_m: float) -> GroundFit | None:
+        n_all = self._count
+        rows = self._rows[:n_all]
+        u = rows[:, 1] - (x - self._ox)
+        v = rows[:, 2] - (y - self._oy)
+        near = u * u + v * v <= radius_m * radius_m
+        a = rows[near]
+        n = len(a)
         if n < _MIN_POINTS:
             return None
-        dx, dy, z = dx[near], dy[near], pts[near, 2]
-        a = np.stack([np.ones(n), dx, dy, dx * dx, dx * dy, dy * dy], axis=1)
-        lhs = a.T @ a + np.diag(_RIDGE * n)
-        rhs = a.T @ z
-        coef = np.linalg.solve(lhs, rhs)
-        c0, c1, c2, c3, c4, c5 = (float(v) for v in coef)
-        return GroundFit(x, y, (c0, c1, c2, c3, c4, c5), n)
+        lhs = a.T @ a
+        lhs.flat[::7] += _RIDGE * n
+        coef = np.linalg.solve(lhs, a.T @ self._xyz[:n_all, 2][near])
+        c0, c1, c2, c3, c4, c5 = coef.tolist()
+        return GroundFit(self._ox, self._oy, (c0, c1, c2, c3, c4, c5), n)
 
 
 def offsets_from_fit(
