@@ -148,13 +148,18 @@ class MavCodec:
         out: list[MAVLinkMessage] = []
         mav = self.mav
         try:
-            # `parse_buffer`, without its last call on an empty buffer (which cannot give a
-            # message): one parser call for a datagram holding one frame, the usual case
-            msgs: list[MAVLinkMessage] = []
-            m = mav.parse_char(data)
-            while m is not None:
-                msgs.append(m)
-                m = mav.parse_char(b"") if mav.buf_len() > 0 else None
+            if _one_v2_frame(data) and mav.buf_len() == 0:
+                # the usual datagram, one whole MAVLink 2 frame: straight to pymavlink's
+                # decoder, as its parser would hand it over (`_decode_frame`)
+                msgs = [self._decode_frame(data)]
+            else:
+                # `parse_buffer`, without its last call on an empty buffer (which cannot
+                # give a message)
+                msgs = []
+                m = mav.parse_char(data)
+                while m is not None:
+                    msgs.append(m)
+                    m = mav.parse_char(b"") if mav.buf_len() > 0 else None
         except Exception as exc:
             self.counters.parser_errors += 1
             log.debug("parser error: %r", exc)
@@ -188,12 +193,47 @@ class MavCodec:
             self._reset()
         return out
 
+    def _decode_frame(self, data: bytes) -> MAVLinkMessage:
+        """One whole MAVLink 2 frame (`_one_v2_frame`) through pymavlink's `decode`, with
+        what its parser does around that call in robust mode: a frame that fails to decode
+        becomes BAD_DATA with the decoder's reason, and the parser's totals count it."""
+        mav = self.mav
+        buf = bytearray(data)
+        try:
+            m = mav.decode(buf)
+        except mavlink2.MAVError as exc:
+            m = mavlink2.MAVLink_bad_data(buf, exc.message)
+            mav.total_receive_errors += 1
+        mav.have_prefix_error = False
+        mav.total_bytes_received += len(data)
+        mav.total_packets_received += 1
+        return m
+
     def _reset(self) -> None:
         m = self.mav
         m.buf = bytearray()
         m.buf_index = 0
         m.expected_length = mavlink2.HEADER_LEN_V1 + 2
         m.have_prefix_error = False
+
+
+_V2_FRAME_OVERHEAD: int = mavlink2.HEADER_LEN_V2 + 2
+"""Bytes of a MAVLink 2 frame around its payload: header and checksum (no signature)."""
+
+
+def _one_v2_frame(data: bytes) -> bool:
+    """`data` is exactly one MAVLink 2 frame by its header: the start marker, no
+    incompatibility flag other than "signed", and the length its header gives (payload,
+    header, checksum, signature if signed). Its contents are the decoder's to judge."""
+    if len(data) < _V2_FRAME_OVERHEAD or data[0] != mavlink2.PROTOCOL_MARKER_V2:
+        return False
+    flags = data[2]
+    if flags & ~mavlink2.MAVLINK_IFLAG_SIGNED:
+        return False
+    size: int = data[1] + _V2_FRAME_OVERHEAD
+    if flags:
+        size += mavlink2.MAVLINK_SIGNATURE_BLOCK_LEN
+    return len(data) == size
 
 
 def new_message_factory() -> Any:
