@@ -156,7 +156,7 @@ class MavCodec:
             if _one_v2_frame(data) and mav.buf_len() == 0:
                 # the usual datagram, one whole MAVLink 2 frame: straight to a decoder, as
                 # pymavlink's parser would hand it over
-                if not data[2] and mav.signing.secret_key is None:
+                if not data[2] and mav.signing.secret_key is None and type(data) is bytes:
                     m = _decode_unsigned(data)
                     if m is not None:  # a good frame of a known message
                         mav.have_prefix_error = False
