@@ -57,3 +57,33 @@ def test_a_point_seen_closer_on_the_escape_is_a_conflict_again(
     # 0.3 m closer than accepted: a conflict
     closer = look.clearance - 0.3
     assert not planner._escape_exempt(look.s, closer)[look.s <= s[-1]].any()
+
+
+def test_moving_inside_d_min_stops_before_it_corrects(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Points remembered within D_min of X_d while it moves (a flank seen late): no correction
+    is taken on the move, whose floor would be where it is (and the next new points lower it
+    again); the planner stops, and corrects from rest."""
+    monkeypatch.setattr(Planner, "_carve", lambda self, *args: None)
+    route = Route(np.array([[0.0, 0.0], [60.0, 0.0]]), 0.0, 0.0)
+    planner = Planner(PlannerParams(), SENSORS, route, np.array([0.0, 0.0, 2.0]))
+    state = VehicleState(np.array([0.0, 0.0, 2.0]), 0.0, 0.0, 0.0)
+    for _ in range(80):  # up to v_d along the route
+        res = planner.step(state, flat_ranges(2.0), 0.05)
+        state = VehicleState(np.array(res.setpoint.position_enu), 0.0, 0.0, 0.0)
+    assert res.diagnostics.speed_ref_mps > 0.5
+    x0 = float(state.position_enu[0])
+    x = np.arange(x0 - 6.0, x0 + 0.6, 0.2)  # beside and behind: the route itself leads out
+    planner._memory.add(np.column_stack([x, np.full_like(x, 1.5), np.full_like(x, 2.0)]), 0)
+    moving_corrections, stopped = 0, False
+    for _ in range(200):
+        res = planner.step(state, flat_ranges(2.0), 0.05)
+        d = res.diagnostics
+        if d.speed_ref_mps > 0.0 and not stopped:
+            moving_corrections += d.replanned
+            assert d.decision.value == "blocked"
+        stopped = stopped or d.speed_ref_mps == 0.0
+        p = np.array(res.setpoint.position_enu)
+        assert 1.5 - p[1] >= 1.5 - 1e-9  # never towards the wall
+        state = VehicleState(p, 0.0, 0.0, res.setpoint.yaw_rad)
+    assert stopped and moving_corrections == 0
+    assert planner._mode.value != "route"  # from rest it took a correction away from the wall

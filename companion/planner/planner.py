@@ -38,6 +38,7 @@ from companion.planner.avoidance import (
     AvoidanceRequest,
     Detour,
     detour_search,
+    min_distance,
     min_distance_within,
     passed_beside,
 )
@@ -815,6 +816,16 @@ class Planner:
         conflict_xy = nearby[d_to_bad - nearby_inflation < trigger]
         free_left, free_right = self._free_range(ranges, valid)
         at_rest = self._v <= speed.STOPPED_MPS
+        if not at_rest:
+            start_clear = float(min_distance(here[None, :], nearby, nearby_inflation)[0])
+            if start_clear < params.d_min_m - _ESCAPE_TOLERANCE_M:
+                # Inside D_min (as the memory has it) and moving: a correction from here
+                # would start where it is and keep that floor, and the next cycle's new
+                # points lower it again (creeping along a flank). Stop; from rest the
+                # search may lead out.
+                self._search = None
+                self._set_blocked(events)
+                return False
         # A search that failed is not repeated while nothing it depends on has changed: no
         # new or dropped memory cell, the reference point within a cell of where it was, the
         # same state of motion (a blocked cycle is the costly one; bounded, it is retried
