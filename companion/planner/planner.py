@@ -388,7 +388,10 @@ class Planner:
         if len(steep_xyz):
             self._memory.add(steep_xyz, self._cycle, steep_inflation)
         self._memory.forget_far(state.position_enu[:2])
-        nearest = float(np.min(ranges[obs], initial=math.inf, where=detected))
+        nearest = min(
+            [r for r, ok in zip(ranges[obs].tolist(), detected.tolist(), strict=True) if ok],
+            default=math.inf,
+        )
         min_range = nearest if nearest < math.inf else 0.0
 
         # Horizontal correction when the path ahead conflicts with remembered points.
