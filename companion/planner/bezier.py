@@ -16,6 +16,7 @@ from __future__ import annotations
 import bisect
 import itertools
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import NamedTuple
 
@@ -26,6 +27,10 @@ from companion.planner.types import FloatArray
 _GL_NODES, _GL_WEIGHTS = np.polynomial.legendre.leggauss(8)
 _GL = tuple((float(x), float(w)) for x, w in zip(_GL_NODES, _GL_WEIGHTS, strict=True))
 _TABLE_INTERVALS = 16
+_UNIFORM_BASIS: dict[int, FloatArray] = {}
+"""The Bernstein basis at n uniform t, by n (`CubicBezier.sample`): the same for every
+segment. Constants of the module, computed on first use."""
+_UNIFORM_BASIS_KEPT = 1024
 _TABLE_MAX_DEPTH = 16
 
 
@@ -66,13 +71,24 @@ class CubicBezier:
         c = np.array(self.control, dtype=np.float64)
         if c.shape != (4, 2):
             raise ValueError(f"control points must be a finite (4, 2) array, got {c!r}")
+        self._setup(c, c.ravel().tolist())
+
+    @classmethod
+    def from_floats(cls, flat: list[float]) -> CubicBezier:
+        """The segment of control points x0, y0, x1, y1, x2, y2, x3, y3 (plain floats, metres):
+        `CubicBezier(np.array(...).reshape(4, 2))` without the array's round trip (a segment
+        is built per candidate correction)."""
+        seg = object.__new__(cls)
+        seg._setup(np.array(flat, dtype=np.float64).reshape(4, 2), flat)
+        return seg
+
+    def _setup(self, c: FloatArray, flat: list[float]) -> None:
         # Scalar copies of the control points and of the hodograph's control points
         # (x0, y0, x1, y1, ...) for the per-cycle scalar fast paths (pure-float maths; the
         # same operations, in the same order, as the array forms 3 diff(c) and the powers
         # below, so the same numbers). Plain floats: a segment is built per candidate
         # correction, and numpy's overhead on a (4, 2) array is most of that cost.
-        flat = c.ravel().tolist()
-        if not all(math.isfinite(v) for v in flat):
+        if not all(map(math.isfinite, flat)):
             raise ValueError(f"control points must be a finite (4, 2) array, got {c!r}")
         c.setflags(write=False)
         object.__setattr__(self, "control", c)
@@ -377,7 +393,14 @@ class CubicBezier:
 
     def sample(self, n: int) -> FloatArray:
         """n points at uniform t, including both ends, (n, 2)."""
-        return self.evaluate(np.linspace(0.0, 1.0, n))
+        basis = _UNIFORM_BASIS.get(n)
+        if basis is None:
+            basis = _bernstein(np.linspace(0.0, 1.0, n))
+            basis.setflags(write=False)
+            if len(_UNIFORM_BASIS) < _UNIFORM_BASIS_KEPT:
+                _UNIFORM_BASIS[n] = basis
+        out: FloatArray = basis @ self.control  # (`evaluate`'s product, the same numbers)
+        return out
 
 
 def _real_roots_quadratic(c2: float, c1: float, c0: float) -> list[float]:
@@ -396,6 +419,12 @@ def _real_roots_quadratic(c2: float, c1: float, c0: float) -> list[float]:
     return [q / c2, c0 / q]
 
 
+def _pair(v: FloatArray | Sequence[float]) -> tuple[float, float]:
+    """x, y of a 2-vector as plain floats."""
+    x, y = v.tolist() if isinstance(v, np.ndarray) else v
+    return float(x), float(y)
+
+
 def segment_through(
     start: FloatArray,
     start_dir: FloatArray,
@@ -409,12 +438,15 @@ def segment_through(
     Handles default to a third of the chord, which gives a curve without loops for
     moderate turns; pass equal handles at a joint for a parametric C1 join.
     """
-    p0 = np.asarray(start, dtype=np.float64)
-    p3 = np.asarray(end, dtype=np.float64)
-    dx, dy = float(p3[0]) - float(p0[0]), float(p3[1]) - float(p0[1])
+    # Plain floats, the array form's operations element by element (the same numbers).
+    x0, y0 = _pair(start)
+    x3, y3 = _pair(end)
+    sx, sy = _pair(start_dir)
+    ex, ey = _pair(end_dir)
+    dx, dy = x3 - x0, y3 - y0
     chord = math.sqrt(dx * dx + dy * dy)
-    h0 = chord / 3.0 if handle_m is None else handle_m
-    h1 = h0 if end_handle_m is None else end_handle_m
-    return CubicBezier(
-        np.array([p0, p0 + h0 * np.asarray(start_dir), p3 - h1 * np.asarray(end_dir), p3])
+    h0 = chord / 3.0 if handle_m is None else float(handle_m)
+    h1 = h0 if end_handle_m is None else float(end_handle_m)
+    return CubicBezier.from_floats(
+        [x0, y0, x0 + h0 * sx, y0 + h0 * sy, x3 - h1 * ex, y3 - h1 * ey, x3, y3]
     )
