@@ -485,8 +485,9 @@ def _hold_and_rejoin(
         2.0 * params.min_turn_radius_m,
         4.0,
     )
-    next_base = route.base_s[route.base_s > hold_end + 1e-6]
-    limit = float(next_base[0]) if len(next_base) else route.length
+    base_s = route.base_s_list  # the first base point beyond hold_end (ascending)
+    i = bisect.bisect_right(base_s, hold_end + 1e-6)
+    limit = base_s[i] if i < len(base_s) else route.length
     return hold_end, hold_end + ret, limit if hold_end + ret > limit else None
 
 
@@ -513,7 +514,9 @@ def passed_beside(
 def _skipped(route: Route, leave_s: float, hold_end: float) -> int:
     """How many base points a candidate that leaves the route at leave_s and holds its
     offset to hold_end (route arc lengths, m) passes at that offset instead of through."""
-    return int(np.count_nonzero((route.base_s > leave_s + 0.5) & (route.base_s <= hold_end)))
+    base_s = route.base_s_list  # ascending: those in (leave_s + 0.5, hold_end]
+    first = bisect.bisect_right(base_s, leave_s + 0.5)
+    return max(bisect.bisect_right(base_s, hold_end) - first, 0)
 
 
 def _with_transitions(
