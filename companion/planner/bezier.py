@@ -128,22 +128,25 @@ class CubicBezier:
         b = np.arange(1, n + 1) / n
         m = 0.5 * (a + b)
         quad = self._gauss_legendre_many(np.concatenate([a, a, m]), np.concatenate([b, m, b]))
-        whole, halves = quad[:n], quad[n : 2 * n] + quad[2 * n :]
+        # Plain floats from here (the same numbers as numpy's scalars, fewer calls).
+        whole = quad[:n].tolist()
+        halves = (quad[n : 2 * n] + quad[2 * n :]).tolist()
+        a_list, b_list = a.tolist(), b.tolist()
         knots = [0.0]
         cum = [0.0]
         cusps = self._cusps()
         for k in range(n):
-            inside = [r for r in cusps if a[k] < r < b[k]]
+            inside = [r for r in cusps if a_list[k] < r < b_list[k]]
             if inside:
                 # |B'| has a kink at a cusp: integrate up to it and from it, never across.
-                edges = [float(a[k]), *inside, float(b[k])]
+                edges = [a_list[k], *inside, b_list[k]]
                 for lo, hi in itertools.pairwise(edges):
                     self._refine(lo, hi, 0, knots, cum)
             elif abs(whole[k] - halves[k]) > 1e-13 * (1.0 + whole[k]):
-                self._refine(float(a[k]), float(b[k]), 0, knots, cum)
+                self._refine(a_list[k], b_list[k], 0, knots, cum)
             else:
-                knots.append(float(b[k]))
-                cum.append(cum[-1] + float(halves[k]))
+                knots.append(b_list[k])
+                cum.append(cum[-1] + halves[k])
         table = (tuple(knots), tuple(cum))
         object.__setattr__(self, "_table", table)
         return table
@@ -152,11 +155,16 @@ class CubicBezier:
         """The t in (0, 1) where B'(t) = 0 (a cusp, or a straight curve doubling back),
         sorted: both components of the hodograph vanish there."""
         (x0, y0), (x1, y1), (x2, y2) = self._h
-        scale = 1.0 + max(abs(v) for v in (x0, y0, x1, y1, x2, y2))
+        scale = 1.0 + max(abs(x0), abs(y0), abs(x1), abs(y1), abs(x2), abs(y2))
         found: list[float] = []
         for c2, c1, c0 in ((x2, x1, x0), (y2, y1, y0)):
             for t in _real_roots_quadratic(c2, c1, c0):
-                if 0.0 < t < 1.0 and float(self.speeds(np.array(t))) <= 1e-9 * scale:
+                if not 0.0 < t < 1.0:
+                    continue
+                # `speeds` at one t in plain floats (the same operations, the same number).
+                dx = (x2 * t + x1) * t + x0
+                dy = (y2 * t + y1) * t + y0
+                if math.sqrt(dx * dx + dy * dy) <= 1e-9 * scale:
                     found.append(t)
         return sorted(set(found))
 
