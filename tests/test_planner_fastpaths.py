@@ -128,9 +128,13 @@ def test_segment_through_in_floats_equals_the_array_form() -> None:
 
 
 def test_cached_uniform_basis_gives_evaluate_s_points() -> None:
-    seg = _random_segments(np.random.default_rng(5), 1)[0]
-    for n in (3, 17, 3, 250):
-        assert seg.sample(n).tobytes() == seg.evaluate(np.linspace(0.0, 1.0, n)).tobytes()
+    bases: dict[int, np.ndarray] = {}
+    for seg in _random_segments(np.random.default_rng(5), 3):
+        for n in (3, 17, 3, 250):
+            expected = seg.evaluate(np.linspace(0.0, 1.0, n)).tobytes()
+            assert seg.sample(n).tobytes() == expected
+            assert seg.sample(n, bases).tobytes() == expected
+    assert sorted(bases) == [3, 17, 250]
 
 
 def test_clearance_memo_measures_as_min_distance_within() -> None:

@@ -122,9 +122,14 @@ def min_distance_within(
     return min_distance(samples_xy, obstacles_xy[inside], infl)
 
 
-def sample_segments(segments: list[CubicBezier]) -> FloatArray:
-    """Points along the segments at roughly _SAMPLE_SPACING_M, (n, 2)."""
-    parts = [seg.sample(max(3, math.ceil(seg.length / _SAMPLE_SPACING_M) + 1)) for seg in segments]
+def sample_segments(
+    segments: list[CubicBezier], bases: dict[int, FloatArray] | None = None
+) -> FloatArray:
+    """Points along the segments at roughly _SAMPLE_SPACING_M, (n, 2). bases: as in
+    `CubicBezier.sample`."""
+    parts = [
+        seg.sample(max(3, math.ceil(seg.length / _SAMPLE_SPACING_M) + 1), bases) for seg in segments
+    ]
     return np.concatenate(parts) if parts else np.empty((0, 2))
 
 
@@ -412,6 +417,7 @@ class ClearanceMemo:
             assert inflation_m is not None
             self._max_inflation = float(inflation_m.max())
         self._entries: dict[tuple[int, float], tuple[CubicBezier, FloatArray, FloatArray]] = {}
+        self._bases: dict[int, FloatArray] = {}  # `CubicBezier.sample`'s, by sample count
 
     def within(self, samples_xy: FloatArray, cutoff_m: float) -> FloatArray:
         """`min_distance_within(samples_xy, obstacles, cutoff_m, inflation)`: the same
@@ -434,7 +440,7 @@ class ClearanceMemo:
         key = (id(seg), limit_m)
         entry = self._entries.get(key)
         if entry is None:
-            samples = sample_segments([seg])
+            samples = sample_segments([seg], self._bases)
             entry = self._entries[key] = (seg, samples, self.within(samples, limit_m))
         return entry[1], entry[2]
 

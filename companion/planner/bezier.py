@@ -27,10 +27,6 @@ from companion.planner.types import FloatArray
 _GL_NODES, _GL_WEIGHTS = np.polynomial.legendre.leggauss(8)
 _GL = tuple((float(x), float(w)) for x, w in zip(_GL_NODES, _GL_WEIGHTS, strict=True))
 _TABLE_INTERVALS = 16
-_UNIFORM_BASIS: dict[int, FloatArray] = {}
-"""The Bernstein basis at n uniform t, by n (`CubicBezier.sample`): the same for every
-segment. Constants of the module, computed on first use."""
-_UNIFORM_BASIS_KEPT = 1024
 _TABLE_MAX_DEPTH = 16
 
 
@@ -399,15 +395,17 @@ class CubicBezier:
             self._uniform[spacing_m] = cached
         return cached
 
-    def sample(self, n: int) -> FloatArray:
-        """n points at uniform t, including both ends, (n, 2)."""
-        basis = _UNIFORM_BASIS.get(n)
+    def sample(self, n: int, bases: dict[int, FloatArray] | None = None) -> FloatArray:
+        """n points at uniform t, including both ends, (n, 2). bases: a cache of the
+        Bernstein basis at n uniform t, by n (the same for every segment), kept by a caller
+        that samples many segments; the same numbers either way."""
+        basis = None if bases is None else bases.get(n)
         if basis is None:
             basis = _bernstein(np.linspace(0.0, 1.0, n))
-            basis.setflags(write=False)
-            if len(_UNIFORM_BASIS) < _UNIFORM_BASIS_KEPT:
-                _UNIFORM_BASIS[n] = basis
-        out: FloatArray = basis @ self.control  # (`evaluate`'s product, the same numbers)
+            if bases is not None:
+                basis.setflags(write=False)
+                bases[n] = basis
+        out: FloatArray = basis @ self.control  # (`evaluate`'s product)
         return out
 
 
