@@ -177,3 +177,16 @@ def test_locate_repeated_gives_the_same_place() -> None:
     for s in (0.3 * path.length, 0.3 * path.length, 0.7 * path.length, 0.3 * path.length):
         k, t = path.locate(s)
         assert (k, t) == (0, path.segments[0].parameter_at(s))
+
+
+def test_min_distance_is_the_distance_to_the_nearest_inflated_disc() -> None:
+    rng = np.random.default_rng(10)
+    for _ in range(200):
+        samples = rng.uniform(-10.0, 10.0, size=(int(rng.integers(1, 40)), 2))
+        points = rng.uniform(-10.0, 10.0, size=(int(rng.integers(1, 80)), 2))
+        inflation = rng.uniform(0.0, 1.0, size=len(points))
+        rel = samples[:, None, :] - points[None, :, :]
+        plain = np.sqrt(rel[..., 0] * rel[..., 0] + rel[..., 1] * rel[..., 1])
+        assert avoidance.min_distance(samples, points).tobytes() == plain.min(axis=1).tobytes()
+        expected = (plain - inflation[None, :]).min(axis=1)
+        assert avoidance.min_distance(samples, points, inflation).tobytes() == expected.tobytes()

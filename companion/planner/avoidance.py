@@ -96,10 +96,14 @@ def min_distance(
     # Per coordinate, not a sum over a length-2 axis: numpy reduces short axes slowly.
     dx = samples_xy[:, 0, None] - obstacles_xy[None, :, 0]
     dy = samples_xy[:, 1, None] - obstacles_xy[None, :, 1]
-    d = np.sqrt(dx * dx + dy * dy)
+    # In place (the same operations, without an (n, k) array per step).
+    np.multiply(dx, dx, out=dx)
+    np.multiply(dy, dy, out=dy)
+    np.add(dx, dy, out=dx)
+    np.sqrt(dx, out=dx)
     if inflation_m is not None:
-        d = d - inflation_m[None, :]
-    return np.asarray(d.min(axis=1), dtype=np.float64)
+        np.subtract(dx, inflation_m[None, :], out=dx)
+    return np.asarray(dx.min(axis=1), dtype=np.float64)
 
 
 def min_distance_within(
