@@ -30,6 +30,7 @@ Pure functions over numpy arrays; frame local ENU x, y metres.
 
 from __future__ import annotations
 
+import bisect
 import math
 from collections.abc import Generator
 from dataclasses import dataclass
@@ -95,10 +96,14 @@ def min_distance(
     # Per coordinate, not a sum over a length-2 axis: numpy reduces short axes slowly.
     dx = samples_xy[:, 0, None] - obstacles_xy[None, :, 0]
     dy = samples_xy[:, 1, None] - obstacles_xy[None, :, 1]
-    d = np.sqrt(dx * dx + dy * dy)
+    # In place (the same operations, without an (n, k) array per step).
+    np.multiply(dx, dx, out=dx)
+    np.multiply(dy, dy, out=dy)
+    np.add(dx, dy, out=dx)
+    np.sqrt(dx, out=dx)
     if inflation_m is not None:
-        d = d - inflation_m[None, :]
-    return np.asarray(d.min(axis=1), dtype=np.float64)
+        np.subtract(dx, inflation_m[None, :], out=dx)
+    return np.asarray(dx.min(axis=1), dtype=np.float64)
 
 
 def min_distance_within(
@@ -121,9 +126,14 @@ def min_distance_within(
     return min_distance(samples_xy, obstacles_xy[inside], infl)
 
 
-def sample_segments(segments: list[CubicBezier]) -> FloatArray:
-    """Points along the segments at roughly _SAMPLE_SPACING_M, (n, 2)."""
-    parts = [seg.sample(max(3, math.ceil(seg.length / _SAMPLE_SPACING_M) + 1)) for seg in segments]
+def sample_segments(
+    segments: list[CubicBezier], bases: dict[int, FloatArray] | None = None
+) -> FloatArray:
+    """Points along the segments at roughly _SAMPLE_SPACING_M, (n, 2). bases: as in
+    `CubicBezier.sample`."""
+    parts = [
+        seg.sample(max(3, math.ceil(seg.length / _SAMPLE_SPACING_M) + 1), bases) for seg in segments
+    ]
     return np.concatenate(parts) if parts else np.empty((0, 2))
 
 
@@ -137,14 +147,30 @@ _SECOND = np.stack([1.0 - _CURVATURE_T, _CURVATURE_T], 1)  # B'' against its (33
 def max_abs_curvature(segments: list[CubicBezier]) -> float:
     """Largest |curvature| (1/m) at 33 evenly spaced t of each segment (`curvature`, for
     all the segments at once)."""
-    control = np.stack([seg.control for seg in segments])  # (m, 4, 2)
-    d1 = _FIRST @ (3.0 * np.diff(control, axis=1))  # (m, 33, 2)
-    d2 = _SECOND @ (6.0 * np.diff(control, n=2, axis=1))
+    return max(max_abs_curvatures(segments))
+
+
+def max_abs_curvatures(segments: list[CubicBezier]) -> list[float]:
+    """`max_abs_curvature` of each segment, (len(segments),) 1/m, in one pass: callers that
+    compare several options build them all, then measure them together."""
+    # The hodograph's control points 3 diff(control) (each segment keeps them as floats)
+    # and 6 diff(control, n=2), computed as numpy's diff computes them: the same numbers
+    # as the array forms, without stacking and differencing (m, 4, 2) arrays.
+    first = []
+    second = []
+    for seg in segments:
+        x0, y0, x1, y1, x2, y2, x3, y3 = seg._c
+        d = seg._d
+        first.append(((d[0], d[1]), (d[2], d[3]), (d[4], d[5])))
+        a0, b0, a1, b1, a2, b2 = x1 - x0, y1 - y0, x2 - x1, y2 - y1, x3 - x2, y3 - y2
+        second.append(((6.0 * (a1 - a0), 6.0 * (b1 - b0)), (6.0 * (a2 - a1), 6.0 * (b2 - b1))))
+    d1 = _FIRST @ np.array(first)  # (m, 33, 2)
+    d2 = _SECOND @ np.array(second)
     cross = d1[..., 0] * d2[..., 1] - d1[..., 1] * d2[..., 0]
     speed = np.hypot(d1[..., 0], d1[..., 1])
-    with np.errstate(divide="ignore", invalid="ignore"):
-        kappa = np.where(speed > 1e-12, cross / speed**3, 0.0)
-    return float(np.abs(kappa).max())
+    kappa = np.divide(cross, speed**3, out=np.zeros_like(speed), where=speed > 1e-12)
+    per_segment: list[float] = np.abs(kappa).max(axis=1).tolist()
+    return per_segment
 
 
 def free_intervals(
@@ -171,11 +197,12 @@ def free_intervals(
 
 def _route_frame(poly: Polyline, s: float) -> tuple[FloatArray, FloatArray, FloatArray]:
     """Point, unit tangent and left normal of the dense route polyline at arc length s."""
-    j = min(max(int(np.searchsorted(poly.s, s)), 0), len(poly.s) - 1)
-    if j > 0 and (s - poly.s[j - 1]) < (poly.s[j] - s):
+    s_list = poly.s_list
+    j = min(bisect.bisect_left(s_list, s), len(s_list) - 1)
+    if j > 0 and (s - s_list[j - 1]) < (s_list[j] - s):
         j -= 1
     t = poly.tangents[j]
-    p = poly.points[j] + t * (s - poly.s[j])
+    p = poly.points[j] + t * (s - s_list[j])
     return p, t, poly.normals[j]
 
 
@@ -282,6 +309,7 @@ def detour_search(
         ]
 
     tails: dict[float, list[CubicBezier]] = {}  # the route after each rejoin point tried
+    memo = ClearanceMemo(obstacles, inflation)  # sorted once; the tails measured once
     yield
     for cost, w, side, leave, transition, through_base, keep_m in options:
         built = _build(
@@ -295,7 +323,7 @@ def detour_search(
             yield
             continue
         if not keeps_clear(
-            detour_segments, tail, obstacles, inflation, keep_m, start_clear, params
+            detour_segments, tail, obstacles, inflation, keep_m, start_clear, params, memo
         ):
             yield
             continue
@@ -356,10 +384,12 @@ def keeps_clear(
     keep_m: float,
     start_clear_m: float,
     params: PlannerParams,
+    memo: ClearanceMemo | None = None,
 ) -> bool:
     """The clearance check of a new path (`comes_closer`): its own segments, then the route
     tail it joins as far as the look-ahead, keep keep_m - 0.05 (at least D_min) from every
-    point; a start already closer than that (start_clear_m) must move out."""
+    point; a start already closer than that (start_clear_m) must move out. memo: as in
+    `comes_closer`."""
     required = min(keep_m - 0.05, max(params.d_min_m, start_clear_m - 0.05))
     floor = start_clear_m - 0.05 if start_clear_m - 0.05 < required else None
     ahead: list[CubicBezier] = []
@@ -369,7 +399,54 @@ def keeps_clear(
             break
         ahead.append(seg)
         along += seg.length
-    return not comes_closer([*segments, *ahead], obstacles_xy, required, inflation_m, floor)
+    return not comes_closer([*segments, *ahead], obstacles_xy, required, inflation_m, floor, memo)
+
+
+class ClearanceMemo:
+    """A search's obstacle points (fixed for the search) prepared for many clearance checks,
+    and what `comes_closer` measured of each segment it saw (its samples, their clearance
+    below a limit), kept for the segments that come back: the route tail that many
+    candidates rejoin. The points are sorted by x once, so that a segment's bounding box
+    takes its points by two binary searches instead of a test of every point; the points
+    inside the box are the same as `min_distance_within` takes, so the numbers are the
+    same. The segments are held, so an id is never reused while its entry lives."""
+
+    def __init__(self, obstacles_xy: FloatArray, inflation_m: FloatArray | None) -> None:
+        order = np.argsort(obstacles_xy[:, 0], kind="stable")
+        self._xy = obstacles_xy[order]
+        self._x = self._xy[:, 0]
+        self._inflation = None if inflation_m is None else inflation_m[order]
+        self._max_inflation = 0.0 if inflation_m is None or not len(inflation_m) else None
+        if self._max_inflation is None:
+            assert inflation_m is not None
+            self._max_inflation = float(inflation_m.max())
+        self._entries: dict[tuple[int, float], tuple[CubicBezier, FloatArray, FloatArray]] = {}
+        self._bases: dict[int, FloatArray] = {}  # `CubicBezier.sample`'s, by sample count
+
+    def within(self, samples_xy: FloatArray, cutoff_m: float) -> FloatArray:
+        """`min_distance_within(samples_xy, obstacles, cutoff_m, inflation)`: the same
+        numbers."""
+        if len(samples_xy) == 0 or len(self._xy) == 0:
+            return np.full(len(samples_xy), np.inf)
+        assert self._max_inflation is not None
+        grow = cutoff_m + self._max_inflation
+        lo = samples_xy.min(axis=0) - grow
+        hi = samples_xy.max(axis=0) + grow
+        i0 = int(np.searchsorted(self._x, lo[0], side="left"))
+        i1 = int(np.searchsorted(self._x, hi[0], side="right"))
+        xy = self._xy[i0:i1]
+        inside = (xy[:, 1] >= lo[1]) & (xy[:, 1] <= hi[1])
+        infl = None if self._inflation is None else self._inflation[i0:i1][inside]
+        return min_distance(samples_xy, xy[inside], infl)
+
+    def measure(self, seg: CubicBezier, limit_m: float) -> tuple[FloatArray, FloatArray]:
+        """The segment's samples (`sample_segments`) and their clearance below limit_m."""
+        key = (id(seg), limit_m)
+        entry = self._entries.get(key)
+        if entry is None:
+            samples = sample_segments([seg], self._bases)
+            entry = self._entries[key] = (seg, samples, self.within(samples, limit_m))
+        return entry[1], entry[2]
 
 
 def comes_closer(
@@ -378,17 +455,22 @@ def comes_closer(
     limit_m: float,
     inflation_m: FloatArray | None = None,
     start_m: float | None = None,
+    memo: ClearanceMemo | None = None,
 ) -> bool:
     """True if a sample of the segments (spaced as `sample_segments` spaces them) is closer
     than limit_m to an obstacle point's inflated disc. A path that starts closer (start_m,
     below limit_m) must move out: at a sample s metres along, the limit is
     min(limit_m, start_m + ESCAPE_SLOPE * s). Segment by segment, stopping at the first
     that fails: most rejected candidates fail early, and a segment's bounding box leaves out
-    most points."""
+    most points. memo: a search's `ClearanceMemo`, made of these obstacles and inflations
+    (it measures against its own copy, each segment once)."""
     along = 0.0
     for seg in segments:
-        samples = sample_segments([seg])
-        near = min_distance_within(samples, obstacles_xy, limit_m, inflation_m)
+        if memo is not None:
+            samples, near = memo.measure(seg, limit_m)
+        else:
+            samples = sample_segments([seg])
+            near = min_distance_within(samples, obstacles_xy, limit_m, inflation_m)
         if start_m is None or start_m >= limit_m or along > (limit_m - start_m) / ESCAPE_SLOPE:
             if float(near.min()) < limit_m:
                 return True
@@ -413,8 +495,9 @@ def _hold_and_rejoin(
         2.0 * params.min_turn_radius_m,
         4.0,
     )
-    next_base = route.base_s[route.base_s > hold_end + 1e-6]
-    limit = float(next_base[0]) if len(next_base) else route.length
+    base_s = route.base_s_list  # the first base point beyond hold_end (ascending)
+    i = bisect.bisect_right(base_s, hold_end + 1e-6)
+    limit = base_s[i] if i < len(base_s) else route.length
     return hold_end, hold_end + ret, limit if hold_end + ret > limit else None
 
 
@@ -441,7 +524,9 @@ def passed_beside(
 def _skipped(route: Route, leave_s: float, hold_end: float) -> int:
     """How many base points a candidate that leaves the route at leave_s and holds its
     offset to hold_end (route arc lengths, m) passes at that offset instead of through."""
-    return int(np.count_nonzero((route.base_s > leave_s + 0.5) & (route.base_s <= hold_end)))
+    base_s = route.base_s_list  # ascending: those in (leave_s + 0.5, hold_end]
+    first = bisect.bisect_right(base_s, leave_s + 0.5)
+    return max(bisect.bisect_right(base_s, hold_end) - first, 0)
 
 
 def _with_transitions(
@@ -583,12 +668,10 @@ def _build(
     tail = tails[rejoin_s]
     # The route tail starts exactly at the rejoin point; snap the last segment's end to it.
     if tail:
-        last = segments[-1]
-        ctrl = last.control.copy()
-        shift = tail[0].control[0] - ctrl[3]
-        ctrl[2] += shift
-        ctrl[3] = tail[0].control[0]
-        segments[-1] = CubicBezier(ctrl)
+        x0, y0, x1, y1, x2, y2, x3, y3 = segments[-1]._c
+        tx, ty = tail[0]._c[:2]
+        dx, dy = tx - x3, ty - y3
+        segments[-1] = CubicBezier.from_floats([x0, y0, x1, y1, x2 + dx, y2 + dy, tx, ty])
     return segments, rejoin_s, tail
 
 
@@ -618,16 +701,25 @@ def _base_direction(
     mirrored = 2.0 * float(np.dot(hold_t, chord)) * chord - hold_t
     options = [line, route_t, mirrored]
     options += [v for v in (_unit_or_none(line + o) for o in options[1:]) if v is not None]
-    best, best_kappa = None, math.inf
+    # The options' segments first, then their curvature in one pass.
+    kept: list[FloatArray] = []
+    segs: list[CubicBezier] = []
     for d in options:
         if float(np.dot(d, chord)) <= 0.0:
             continue
-        segs = [segment_through(hold_p, hold_t, base_p, d)]
+        if rejoin_p is not None and float(np.dot(rejoin_p - base_p, d)) <= 0.0:
+            continue
+        kept.append(d)
+        segs.append(segment_through(hold_p, hold_t, base_p, d))
         if rejoin_p is not None:
-            if float(np.dot(rejoin_p - base_p, d)) <= 0.0:
-                continue
             segs.append(segment_through(base_p, d, rejoin_p, rejoin_t))
-        kappa = max_abs_curvature(segs)
+    if not kept:
+        return None
+    per_segment = max_abs_curvatures(segs)
+    per_option = 1 if rejoin_p is None else 2
+    best, best_kappa = None, math.inf
+    for i, d in enumerate(kept):
+        kappa = max(per_segment[per_option * i : per_option * (i + 1)])
         if kappa < best_kappa:
             best, best_kappa = d, kappa
     return best
@@ -655,7 +747,7 @@ def _start_direction(
     halfway = _unit_or_none(chord + mirrored)
     if halfway is not None:
         options.append((halfway, None))
-    kappas = [
-        max_abs_curvature([segment_through(start, d, target, target_dir, h, h)]) for d, h in options
-    ]
+    kappas = max_abs_curvatures(
+        [segment_through(start, d, target, target_dir, h, h) for d, h in options]
+    )
     return options[int(np.argmin(kappas))]

@@ -16,6 +16,7 @@ from __future__ import annotations
 import bisect
 import itertools
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import NamedTuple
 
@@ -66,13 +67,24 @@ class CubicBezier:
         c = np.array(self.control, dtype=np.float64)
         if c.shape != (4, 2):
             raise ValueError(f"control points must be a finite (4, 2) array, got {c!r}")
+        self._setup(c, c.ravel().tolist())
+
+    @classmethod
+    def from_floats(cls, flat: list[float]) -> CubicBezier:
+        """The segment of control points x0, y0, x1, y1, x2, y2, x3, y3 (plain floats, metres):
+        `CubicBezier(np.array(...).reshape(4, 2))` without the array's round trip (a segment
+        is built per candidate correction)."""
+        seg = object.__new__(cls)
+        seg._setup(np.array(flat, dtype=np.float64).reshape(4, 2), flat)
+        return seg
+
+    def _setup(self, c: FloatArray, flat: list[float]) -> None:
         # Scalar copies of the control points and of the hodograph's control points
         # (x0, y0, x1, y1, ...) for the per-cycle scalar fast paths (pure-float maths; the
         # same operations, in the same order, as the array forms 3 diff(c) and the powers
         # below, so the same numbers). Plain floats: a segment is built per candidate
         # correction, and numpy's overhead on a (4, 2) array is most of that cost.
-        flat = c.ravel().tolist()
-        if not all(math.isfinite(v) for v in flat):
+        if not all(map(math.isfinite, flat)):
             raise ValueError(f"control points must be a finite (4, 2) array, got {c!r}")
         c.setflags(write=False)
         object.__setattr__(self, "control", c)
@@ -112,22 +124,25 @@ class CubicBezier:
         b = np.arange(1, n + 1) / n
         m = 0.5 * (a + b)
         quad = self._gauss_legendre_many(np.concatenate([a, a, m]), np.concatenate([b, m, b]))
-        whole, halves = quad[:n], quad[n : 2 * n] + quad[2 * n :]
+        # Plain floats from here (the same numbers as numpy's scalars, fewer calls).
+        whole = quad[:n].tolist()
+        halves = (quad[n : 2 * n] + quad[2 * n :]).tolist()
+        a_list, b_list = a.tolist(), b.tolist()
         knots = [0.0]
         cum = [0.0]
         cusps = self._cusps()
         for k in range(n):
-            inside = [r for r in cusps if a[k] < r < b[k]]
+            inside = [r for r in cusps if a_list[k] < r < b_list[k]]
             if inside:
                 # |B'| has a kink at a cusp: integrate up to it and from it, never across.
-                edges = [float(a[k]), *inside, float(b[k])]
+                edges = [a_list[k], *inside, b_list[k]]
                 for lo, hi in itertools.pairwise(edges):
                     self._refine(lo, hi, 0, knots, cum)
             elif abs(whole[k] - halves[k]) > 1e-13 * (1.0 + whole[k]):
-                self._refine(float(a[k]), float(b[k]), 0, knots, cum)
+                self._refine(a_list[k], b_list[k], 0, knots, cum)
             else:
-                knots.append(float(b[k]))
-                cum.append(cum[-1] + float(halves[k]))
+                knots.append(b_list[k])
+                cum.append(cum[-1] + halves[k])
         table = (tuple(knots), tuple(cum))
         object.__setattr__(self, "_table", table)
         return table
@@ -136,11 +151,16 @@ class CubicBezier:
         """The t in (0, 1) where B'(t) = 0 (a cusp, or a straight curve doubling back),
         sorted: both components of the hodograph vanish there."""
         (x0, y0), (x1, y1), (x2, y2) = self._h
-        scale = 1.0 + max(abs(v) for v in (x0, y0, x1, y1, x2, y2))
+        scale = 1.0 + max(abs(x0), abs(y0), abs(x1), abs(y1), abs(x2), abs(y2))
         found: list[float] = []
         for c2, c1, c0 in ((x2, x1, x0), (y2, y1, y0)):
             for t in _real_roots_quadratic(c2, c1, c0):
-                if 0.0 < t < 1.0 and float(self.speeds(np.array(t))) <= 1e-9 * scale:
+                if not 0.0 < t < 1.0:
+                    continue
+                # `speeds` at one t in plain floats (the same operations, the same number).
+                dx = (x2 * t + x1) * t + x0
+                dy = (y2 * t + y1) * t + y0
+                if math.sqrt(dx * dx + dy * dy) <= 1e-9 * scale:
                     found.append(t)
         return sorted(set(found))
 
@@ -375,9 +395,18 @@ class CubicBezier:
             self._uniform[spacing_m] = cached
         return cached
 
-    def sample(self, n: int) -> FloatArray:
-        """n points at uniform t, including both ends, (n, 2)."""
-        return self.evaluate(np.linspace(0.0, 1.0, n))
+    def sample(self, n: int, bases: dict[int, FloatArray] | None = None) -> FloatArray:
+        """n points at uniform t, including both ends, (n, 2). bases: a cache of the
+        Bernstein basis at n uniform t, by n (the same for every segment), kept by a caller
+        that samples many segments; the same numbers either way."""
+        basis = None if bases is None else bases.get(n)
+        if basis is None:
+            basis = _bernstein(np.linspace(0.0, 1.0, n))
+            if bases is not None:
+                basis.setflags(write=False)
+                bases[n] = basis
+        out: FloatArray = basis @ self.control  # (`evaluate`'s product)
+        return out
 
 
 def _real_roots_quadratic(c2: float, c1: float, c0: float) -> list[float]:
@@ -396,6 +425,12 @@ def _real_roots_quadratic(c2: float, c1: float, c0: float) -> list[float]:
     return [q / c2, c0 / q]
 
 
+def _pair(v: FloatArray | Sequence[float]) -> tuple[float, float]:
+    """x, y of a 2-vector as plain floats."""
+    x, y = v.tolist() if isinstance(v, np.ndarray) else v
+    return float(x), float(y)
+
+
 def segment_through(
     start: FloatArray,
     start_dir: FloatArray,
@@ -409,12 +444,15 @@ def segment_through(
     Handles default to a third of the chord, which gives a curve without loops for
     moderate turns; pass equal handles at a joint for a parametric C1 join.
     """
-    p0 = np.asarray(start, dtype=np.float64)
-    p3 = np.asarray(end, dtype=np.float64)
-    dx, dy = float(p3[0]) - float(p0[0]), float(p3[1]) - float(p0[1])
+    # Plain floats, the array form's operations element by element (the same numbers).
+    x0, y0 = _pair(start)
+    x3, y3 = _pair(end)
+    sx, sy = _pair(start_dir)
+    ex, ey = _pair(end_dir)
+    dx, dy = x3 - x0, y3 - y0
     chord = math.sqrt(dx * dx + dy * dy)
-    h0 = chord / 3.0 if handle_m is None else handle_m
-    h1 = h0 if end_handle_m is None else end_handle_m
-    return CubicBezier(
-        np.array([p0, p0 + h0 * np.asarray(start_dir), p3 - h1 * np.asarray(end_dir), p3])
+    h0 = chord / 3.0 if handle_m is None else float(handle_m)
+    h1 = h0 if end_handle_m is None else float(end_handle_m)
+    return CubicBezier.from_floats(
+        [x0, y0, x0 + h0 * sx, y0 + h0 * sy, x3 - h1 * ex, y3 - h1 * ey, x3, y3]
     )

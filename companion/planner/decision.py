@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 from companion.planner.params import PlannerParams
@@ -9,6 +11,9 @@ from companion.planner.sensors import Group
 from companion.planner.types import BoolArray, Decision, FloatArray, IntArray
 
 _ROWS = np.arange(64, dtype=np.intp)
+_SMALL_CLOUD = 10
+"""Up to this many points `chord_steepness` loops in plain floats (fewer calls than the
+array form's two dozen numpy operations); the numbers are the same (`tests/test_decision`)."""
 
 
 def steepness(
@@ -57,6 +62,8 @@ def chord_steepness(points: FloatArray, min_separation_m: float) -> tuple[FloatA
     n = len(points)
     if n < 2:
         return np.zeros(n), np.full(n, -1, dtype=np.intp)
+    if n <= _SMALL_CLOUD:
+        return _chord_steepness_small(points, min_separation_m)
     # About a dozen points a cycle: the number of array operations sets the cost.
     x, y, z = points.T
     dz = np.subtract.outer(z, z)
@@ -72,3 +79,30 @@ def chord_steepness(points: FloatArray, min_separation_m: float) -> tuple[FloatA
     found = ratio.ravel()[flat] >= 0.0
     best = np.arctan2(dz.ravel()[flat], h.ravel()[flat])
     return np.where(found, best, 0.0), np.where(found, partner, -1)
+
+
+def _chord_steepness_small(
+    points: FloatArray, min_separation_m: float
+) -> tuple[FloatArray, IntArray]:
+    """`chord_steepness` in plain floats, for a few points: the same operations (sqrt,
+    division; no hypot) in the same order and the first of equal chords, so the same
+    numbers; the angles from one numpy arctan2, as the array form takes them."""
+    pts = points.tolist()
+    rises: list[float] = []
+    runs: list[float] = []
+    partners: list[int] = []
+    for xi, yi, zi in pts:
+        best, k_best, rise, run = -1.0, -1, 0.0, 0.0
+        for k, (xk, yk, zk) in enumerate(pts):
+            dz = zi - zk
+            if dz > 0.0:
+                dx, dy = xi - xk, yi - yk
+                h = math.sqrt(dx * dx + dy * dy)
+                if h >= min_separation_m and dz / h > best:
+                    best, k_best, rise, run = dz / h, k, dz, h
+        rises.append(rise)
+        runs.append(run)
+        partners.append(k_best)
+    # arctan2(0, 0) = 0 where there is no chord, as in the array form.
+    angles: FloatArray = np.arctan2(rises, runs)
+    return angles, np.array(partners, dtype=np.intp)

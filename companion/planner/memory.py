@@ -44,6 +44,11 @@ class ObstacleMemory:
         self._free: list[int] = list(range(_INITIAL_SLOTS - 1, -1, -1))
         self._xy: FloatArray | None = None
         self._infl: FloatArray | None = None
+        # `forget_far`'s last measure: (x, y, slack), radius_m less the farthest stored
+        # point's distance from (x, y); None when unknown. Until the position has moved
+        # `slack` from (x, y) no stored point can be farther than radius_m (triangle
+        # inequality), so most cycles need no distance at all. Adding a point lowers it.
+        self._far_check: tuple[float, float, float] | None = None
 
     def __len__(self) -> int:
         return len(self._cells)
@@ -82,6 +87,10 @@ class ObstacleMemory:
             self._xyz[slot] = (x, y, z)
             self._cycle[slot] = cycle
             self._inflation[slot] = e
+            check = self._far_check
+            if check is not None:
+                cx, cy, slack = check
+                self._far_check = (cx, cy, min(slack, self.radius_m - math.hypot(x - cx, y - cy)))
         while len(cells) > self.max_points:
             self._free.append(cells.pop(next(iter(cells))))
             new += 1
@@ -100,10 +109,19 @@ class ObstacleMemory:
         """Drop points farther than radius_m from position_xy; returns how many."""
         if not self._cells:
             return 0
-        xy = self.points_xy()
-        far = np.hypot(xy[:, 0] - position_xy[0], xy[:, 1] - position_xy[1]) > self.radius_m
-        if not far.any():
+        x, y = float(position_xy[0]), float(position_xy[1])
+        check = self._far_check
+        # (1e-6 m: far above the rounding of distances of a few hundred metres.)
+        if check is not None and math.hypot(x - check[0], y - check[1]) < check[2] - 1e-6:
             return 0
+        xy = self.points_xy()
+        d = np.hypot(xy[:, 0] - position_xy[0], xy[:, 1] - position_xy[1])
+        far = d > self.radius_m
+        if not far.any():
+            self._far_check = (x, y, self.radius_m - float(d.max()))
+            return 0
+        kept = d[~far]
+        self._far_check = (x, y, self.radius_m - float(kept.max())) if len(kept) else None
         keys = list(self._cells)
         for i in np.flatnonzero(far).tolist():
             self._free.append(self._cells.pop(keys[i]))

@@ -32,6 +32,8 @@ class Polyline:
     tangents: FloatArray
     normals: FloatArray
     curvature: FloatArray
+    s_list: list[float]
+    """s as plain floats (for bisect)."""
 
 
 class Path:
@@ -51,6 +53,8 @@ class Path:
         self._starts = starts
         self._polyline: Polyline | None = None
         self._tails: dict[float, list[CubicBezier]] = {}
+        # The last `locate`: X_d at rest asks for the same s cycle after cycle.
+        self._located: tuple[float, int, float] = (math.nan, 0, 0.0)
 
     @property
     def length(self) -> float:
@@ -67,8 +71,13 @@ class Path:
             return 0, 0.0
         if s >= self.length:
             return len(self.segments) - 1, 1.0
+        last_s, last_k, last_t = self._located
+        if s == last_s:
+            return last_k, last_t
         k = min(bisect.bisect_right(self._starts, s) - 1, len(self.segments) - 1)
-        return k, self.segments[k].parameter_at(s - self._starts[k])
+        t = self.segments[k].parameter_at(s - self._starts[k])
+        self._located = (s, k, t)
+        return k, t
 
     def arc_length_at(self, index: int, t: float) -> float:
         """Arc length of (segment index, t)."""
@@ -106,12 +115,14 @@ class Path:
             tans.append(tangents[first:])
             curv.append(curvature[first:])
         tangents = np.concatenate(tans)
+        s_all = np.concatenate(ss)
         poly = Polyline(
-            s=np.concatenate(ss),
+            s=s_all,
             points=np.concatenate(pts),
             tangents=tangents,
             normals=np.stack([-tangents[:, 1], tangents[:, 0]], axis=1),
             curvature=np.concatenate(curv),
+            s_list=s_all.tolist(),
         )
         if spacing_m == 0.25:
             self._polyline = poly

@@ -398,7 +398,10 @@ class Planner:
         if len(steep_xyz):
             self._memory.add(steep_xyz, self._cycle, steep_inflation)
         self._memory.forget_far(state.position_enu[:2])
-        nearest = float(np.min(ranges[obs], initial=math.inf, where=detected))
+        nearest = min(
+            [r for r, ok in zip(ranges[obs].tolist(), detected.tolist(), strict=True) if ok],
+            default=math.inf,
+        )
         min_range = nearest if nearest < math.inf else 0.0
 
         # Horizontal correction when the path ahead conflicts with remembered points.
@@ -1075,11 +1078,10 @@ class Planner:
     def _vehicle_ahead_m(self, position_enu: FloatArray) -> float:
         """How far the vehicle is ahead of last cycle's X_d along the path's heading there,
         metres (0 when behind or level); horizontal."""
-        x, y = position_enu[0], position_enu[1]
+        x, y = position_enu[:2].tolist()  # plain floats: the same numbers, fewer calls
+        xd, yd = self._xd_prev[:2].tolist()
         heading = self._path_heading()
-        ahead = float(
-            (x - self._xd_prev[0]) * math.cos(heading) + (y - self._xd_prev[1]) * math.sin(heading)
-        )
+        ahead = (x - xd) * math.cos(heading) + (y - yd) * math.sin(heading)
         return ahead if math.isfinite(ahead) and ahead > 0.0 else 0.0
 
     def _free_range(self, ranges: FloatArray, valid: BoolArray) -> tuple[float, float]:

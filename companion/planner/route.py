@@ -85,6 +85,8 @@ class Route(Path):
         w.setflags(write=False)
         self.base_points = w
         self.base_s = np.array([self.segment_start(i) for i in range(n - 1)] + [self.length])
+        self.base_s_list: list[float] = self.base_s.tolist()
+        """base_s as plain floats, ascending (for bisect)."""
         self.start_heading_rad = math.atan2(float(dirs[0][1]), float(dirs[0][0]))
         self.arrival_heading_rad = math.atan2(float(dirs[-1][1]), float(dirs[-1][0]))
         self.arrival_heading_given = arrival_heading_rad is not None
