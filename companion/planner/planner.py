@@ -111,14 +111,15 @@ _YAW_ALIGNED_RAD = 0.1
 _GROUND_HOLD_RANGE = 4.0
 _RETRY_BLOCKED_CYCLES = 20
 _MIN_CHORD_M = 0.5
-_LOCAL_CHORD_M = 2.5
-# Ground points within this horizontal radius of the vehicle shape its aim (`ground`).
-_GROUND_FIT_RADIUS_M = 3.0
-# The most the ground's shape may move eq. (3)'s aim point up or down, metres.
-_GROUND_LIFT_MAX_M = 0.5
-"""Longest horizontal chord whose slope is taken as the slope at its upper end."""
 """Shortest horizontal chord whose slope counts (`chord_steepness`): over shorter ones a
 few centimetres of range noise would read as a steep slope."""
+_LOCAL_CHORD_M = 2.5
+"""Longest horizontal chord whose slope is taken as the slope at its upper end."""
+_GROUND_FIT_RADIUS_M = 3.0
+"""Ground points within this horizontal radius of the middle of X_d(k-1) -> X_z shape the
+aim (`ground`), metres."""
+_GROUND_LIFT_MAX_M = 0.5
+"""The most the ground's shape may move eq. (3)'s aim point up or down, metres."""
 
 
 @dataclass(frozen=True, slots=True)
