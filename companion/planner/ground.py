@@ -1,7 +1,8 @@
 """The ground around the vehicle from the surface sensors' recent hits: a local quadric.
 
 Eq. (3) takes the ground's slope from one chord, forward ground point to backward one, in
-the heading's vertical plane. Two things it cannot see cost height (docs/terrain.md):
+the heading's vertical plane. Two things it cannot see cost height (docs/paper.md, "Beyond
+eqs (3)-(4)"):
 - a slope across the heading: H is the shortest distance to the surface, so on a side slope
   of angle b the vehicle must fly H_d / cos(b) above the ground, not H_d;
 - curvature: eq. (4) steers towards a point about L = |X_z - X_d| ahead, a first-order lag
@@ -36,7 +37,8 @@ _REFIT_POINTS = 2
 
 @dataclass(frozen=True, slots=True)
 class GroundFit:
-    """z = c0 + c1 x + c2 y + c3 x^2 + c4 x y + c5 y^2, x/y metres from origin_xy (ENU)."""
+    """z = c0 + c1 x + c2 y + c3 x^2 + c4 x y + c5 y^2; x, y metres from (origin_x,
+    origin_y), world ENU."""
 
     origin_x: float
     origin_y: float
