@@ -159,8 +159,8 @@ def max_abs_curvatures(segments: list[CubicBezier]) -> list[float]:
     first = []
     second = []
     for seg in segments:
-        x0, y0, x1, y1, x2, y2, x3, y3 = seg._c
-        d = seg._d
+        x0, y0, x1, y1, x2, y2, x3, y3 = seg.control_floats
+        d = seg.hodograph_floats
         first.append(((d[0], d[1]), (d[2], d[3]), (d[4], d[5])))
         a0, b0, a1, b1, a2, b2 = x1 - x0, y1 - y0, x2 - x1, y2 - y1, x3 - x2, y3 - y2
         second.append(((6.0 * (a1 - a0), 6.0 * (b1 - b0)), (6.0 * (a2 - a1), 6.0 * (b2 - b1))))
@@ -416,10 +416,9 @@ class ClearanceMemo:
         self._xy = obstacles_xy[order]
         self._x = self._xy[:, 0]
         self._inflation = None if inflation_m is None else inflation_m[order]
-        self._max_inflation = 0.0 if inflation_m is None or not len(inflation_m) else None
-        if self._max_inflation is None:
-            assert inflation_m is not None
-            self._max_inflation = float(inflation_m.max())
+        self._max_inflation = (
+            float(inflation_m.max()) if inflation_m is not None and len(inflation_m) else 0.0
+        )
         self._entries: dict[tuple[int, float], tuple[CubicBezier, FloatArray, FloatArray]] = {}
         self._bases: dict[int, FloatArray] = {}  # `CubicBezier.sample`'s, by sample count
 
@@ -428,7 +427,6 @@ class ClearanceMemo:
         numbers."""
         if len(samples_xy) == 0 or len(self._xy) == 0:
             return np.full(len(samples_xy), np.inf)
-        assert self._max_inflation is not None
         grow = cutoff_m + self._max_inflation
         lo = samples_xy.min(axis=0) - grow
         hi = samples_xy.max(axis=0) + grow
@@ -668,8 +666,8 @@ def _build(
     tail = tails[rejoin_s]
     # The route tail starts exactly at the rejoin point; snap the last segment's end to it.
     if tail:
-        x0, y0, x1, y1, x2, y2, x3, y3 = segments[-1]._c
-        tx, ty = tail[0]._c[:2]
+        x0, y0, x1, y1, x2, y2, x3, y3 = segments[-1].control_floats
+        tx, ty = tail[0].control_floats[:2]
         dx, dy = tx - x3, ty - y3
         segments[-1] = CubicBezier.from_floats([x0, y0, x1, y1, x2 + dx, y2 + dy, tx, ty])
     return segments, rejoin_s, tail

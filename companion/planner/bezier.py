@@ -63,6 +63,17 @@ class CubicBezier:
     _h: tuple[tuple[float, float], ...] = field(init=False, repr=False, compare=False)
     _uniform: dict[float, UniformSamples] = field(init=False, repr=False, compare=False)
 
+    @property
+    def control_floats(self) -> tuple[float, ...]:
+        """The control points as plain floats x0, y0, x1, y1, x2, y2, x3, y3, metres."""
+        return self._c
+
+    @property
+    def hodograph_floats(self) -> tuple[float, ...]:
+        """The hodograph's control points 3 diff(control) as plain floats (dx0, dy0, dx1,
+        dy1, dx2, dy2), metres: the numbers numpy's `3.0 * np.diff(control, axis=0)` gives."""
+        return self._d
+
     def __post_init__(self) -> None:
         c = np.array(self.control, dtype=np.float64)
         if c.shape != (4, 2):

@@ -392,7 +392,8 @@ class Planner:
             )
         phi_d = 0.0  # no ground in view: hold the height
         if x_z is not None:
-            self._remember_ground(points, surface, len(steep_xyz) > 0)
+            if params.shape_terrain:
+                self._remember_ground(points, surface, len(steep_xyz) > 0)
             phi_d = desired_pitch(self._shaped_aim(x_z, state), self._xd_prev, params.phi_max_rad)
         decision = decide(phi_star, self._thresholds)
         self._carve(state, rot, ranges, valid)
@@ -527,7 +528,7 @@ class Planner:
         """Eq. (3)'s aim point raised for the slope across the heading and for the lag over
         curved relief (`ground.offsets_from_fit`), when the ground store fits a surface."""
         if not self.params.shape_terrain:
-            return x_z
+            return x_z  # (and the ground store stays empty: `step` fills it only for this)
         zx, zy, zz = x_z.tolist()
         # About the middle of the stretch eq. (4) steers over: X_d (k-1) to the aim.
         cx = 0.5 * (zx + float(self._xd_prev[0]))
