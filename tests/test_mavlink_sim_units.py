@@ -131,13 +131,63 @@ def test_scheduler_intervals() -> None:
     assert sum(mavlink.MAVLINK_MSG_ID_ATTITUDE in s.due(t) for t in ticks) == 0
     assert s.set_interval_us(mavlink.MAVLINK_MSG_ID_ATTITUDE, 100_000, 0.0)
     assert s.interval_us(mavlink.MAVLINK_MSG_ID_ATTITUDE) == 100_000
-    assert sum(mavlink.MAVLINK_MSG_ID_ATTITUDE in s.due(t) for t in ticks) == 10
+    # a new interval's first send is one interval later (ArduPilot): 0.1, 0.2, ..., 0.9 s
+    assert sum(mavlink.MAVLINK_MSG_ID_ATTITUDE in s.due(t) for t in ticks) == 9
     s.set_interval_us(mavlink.MAVLINK_MSG_ID_ATTITUDE, -1, 1.0)
     assert s.interval_us(mavlink.MAVLINK_MSG_ID_ATTITUDE) == -1
     assert not s.set_interval_us(mavlink.MAVLINK_MSG_ID_VFR_HUD, 100_000, 1.0)
     assert s.interval_us(mavlink.MAVLINK_MSG_ID_VFR_HUD) == 0
     s.set_interval_us(mavlink.MAVLINK_MSG_ID_HEARTBEAT, 0, 1.0)  # back to the default
     assert s.interval_us(mavlink.MAVLINK_MSG_ID_HEARTBEAT) == 1_000_000
+
+
+ATT = mavlink.MAVLINK_MSG_ID_ATTITUDE
+GPI = mavlink.MAVLINK_MSG_ID_GLOBAL_POSITION_INT
+DS = mavlink.MAVLINK_MSG_ID_DISTANCE_SENSOR
+HB = mavlink.MAVLINK_MSG_ID_HEARTBEAT
+
+
+def _sends(s: MessageScheduler, start: int, stop: int) -> dict[int, list[int]]:
+    """Tick index (10 ms ticks) -> messages due at it, for ticks start..stop-1."""
+    return {k: d for k in range(start, stop) if (d := s.due(k * 0.01))}
+
+
+def test_scheduler_buckets_send_one_interval_together_in_ardupilot_order() -> None:
+    s = MessageScheduler({"HEARTBEAT": 1.0}, "buckets")
+    s.due(0.0)
+    # rates set in different ticks, as a companion's commands arrive one after another
+    s.set_interval_us(DS, 20_000, 0.01)
+    s.set_interval_us(GPI, 20_000, 0.02)
+    s.set_interval_us(ATT, 20_000, 0.05)
+    s.set_interval_us(mavlink.MAVLINK_MSG_ID_SYS_STATUS, 1_000_000, 0.05)
+    sent = _sends(s, 1, 106)
+    fast = {k: [m for m in d if m in (ATT, GPI, DS)] for k, d in sent.items()}
+    fast = {k: d for k, d in fast.items() if d}
+    # one phase, the first one's (set at tick 1, first sent 2 ticks later): every other tick
+    assert sorted(fast) == list(range(3, 106, 2))
+    assert all(d == [ATT, GPI, DS] for d in fast.values())
+    assert [k for k, d in sent.items() if HB in d] == [100]
+    assert [k for k, d in sent.items() if mavlink.MAVLINK_MSG_ID_SYS_STATUS in d] == [105]
+    # the same interval again keeps the phase; another one opens a group of its own
+    s.set_interval_us(GPI, 20_000, 1.061)
+    s.set_interval_us(DS, 100_000, 1.061)
+    later = _sends(s, 107, 140)
+    assert [k for k, d in later.items() if GPI in d] == list(range(107, 140, 2))
+    assert [k for k, d in later.items() if DS in d] == [117, 127, 137]
+    # a message switched off leaves its group; the others keep their phase
+    s.set_interval_us(ATT, -1, 1.40)
+    assert [k for k, d in _sends(s, 140, 146).items() if GPI in d] == [141, 143, 145]
+    assert not any(ATT in d for d in _sends(s, 146, 200).values())
+
+
+def test_scheduler_per_stream_phases() -> None:
+    s = MessageScheduler({"HEARTBEAT": 1.0, "ATTITUDE": 50.0}, "per_stream")
+    assert s.due(0.0) == [HB, ATT]  # the defaults start at boot, together
+    s.set_interval_us(GPI, 20_000, 0.01)  # a stream that was off starts at once
+    s.set_interval_us(ATT, 20_000, 0.01)  # one that streams keeps its phase
+    sent = _sends(s, 1, 9)
+    assert [k for k, d in sent.items() if GPI in d] == [1, 3, 5, 7]
+    assert [k for k, d in sent.items() if ATT in d] == [2, 4, 6, 8]
 
 
 # ---------------------------------------------------------------------------- setpoints

@@ -204,7 +204,12 @@ class SimServer:
         rates = {**self.personality.default_rates_hz, **config.rates_hz}
         if config.lockstep.enabled:
             rates["TIMESYNC"] = 0.0
-        self.scheduler = tm.MessageScheduler(rates)
+        # ArduPilot sends the streams of one interval together (its message buckets); PX4
+        # runs one stream per message, each with its own phase.
+        phases: tm.StreamPhases = (
+            "buckets" if self.personality.family == "ardupilot" else "per_stream"
+        )
+        self.scheduler = tm.MessageScheduler(rates, phases)
         self.codec = Codec(config.system_id, config.component_id)
         self.mission = MissionServer(
             self.codec.mav,

@@ -10,8 +10,8 @@ from __future__ import annotations
 
 import math
 from collections.abc import Mapping
-from dataclasses import dataclass
-from typing import Any
+from dataclasses import dataclass, field
+from typing import Any, Literal
 
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
@@ -24,20 +24,53 @@ from companion.sim.mavlink.streams import NAME_OF_ID, STREAMED_MESSAGES
 _EPS = 1e-9
 
 
-class MessageScheduler:
-    """Per-message intervals and due times, in simulated seconds."""
+StreamPhases = Literal["buckets", "per_stream"]
+"""How the streams' send times are phased: see `MessageScheduler`."""
 
-    def __init__(self, default_rates_hz: Mapping[str, float]) -> None:
+
+@dataclass(slots=True)
+class _Group:
+    """Messages sent together: one interval, one phase (simulated seconds)."""
+
+    interval_s: float
+    next_s: float
+    members: set[int] = field(default_factory=set)
+
+
+class MessageScheduler:
+    """Per-message intervals and due times, in simulated seconds.
+
+    phases = "buckets" (ArduPilot, GCS_MAVLINK's deferred message buckets): the messages of
+    one interval form one group with one phase, so they go out in the same tick, in the
+    order of `STREAMED_MESSAGES` (ATTITUDE, the position, ..., the DISTANCE_SENSORs). A
+    message set to an interval no group has opens a group whose first send is one interval
+    later; a message set to the interval of a group joins that group's phase; a message set
+    again to the interval it has keeps its phase. HEARTBEAT keeps a phase of its own
+    (ArduPilot schedules it apart from the buckets).
+    phases = "per_stream" (PX4, one MavlinkStream per message): each message has its own
+    phase; a stream that was off starts at once, one that streams keeps its phase when its
+    interval changes.
+    After a (re)boot the default rates start at once, in one group per interval.
+    """
+
+    def __init__(
+        self, default_rates_hz: Mapping[str, float], phases: StreamPhases = "buckets"
+    ) -> None:
         self._defaults: dict[int, float | None] = {
             STREAMED_MESSAGES[name]: (1.0 / hz if hz > 0 else None)
             for name, hz in default_rates_hz.items()
         }
+        self.phases: StreamPhases = phases
         self.reset(0.0)
 
     def reset(self, now_s: float) -> None:
-        """Back to the default rates (after a reboot)."""
-        self._interval: dict[int, float | None] = dict(self._defaults)
-        self._next: dict[int, float] = {m: now_s for m in self._interval}
+        """Back to the default rates (after a reboot); they start at now_s."""
+        self._interval: dict[int, float | None] = {}
+        self._group_of: dict[int, _Group] = {}
+        self._groups: list[_Group] = []
+        for msg_id in STREAMED_MESSAGES.values():
+            if msg_id in self._defaults:
+                self._assign(msg_id, self._defaults[msg_id], now_s, first_s=now_s)
 
     def supports(self, msg_id: int) -> bool:
         return msg_id in NAME_OF_ID
@@ -46,13 +79,14 @@ class MessageScheduler:
         """MAV_CMD_SET_MESSAGE_INTERVAL semantics; False for a message that is not streamed."""
         if not self.supports(msg_id) or not math.isfinite(interval_us):
             return False
+        interval: float | None
         if interval_us < 0:
-            self._interval[msg_id] = None
+            interval = None
         elif interval_us == 0:
-            self._interval[msg_id] = self._defaults.get(msg_id)
+            interval = self._defaults.get(msg_id)
         else:
-            self._interval[msg_id] = interval_us * 1e-6
-        self._next[msg_id] = now_s
+            interval = interval_us * 1e-6
+        self._assign(msg_id, interval, now_s)
         return True
 
     def interval_us(self, msg_id: int) -> int:
@@ -64,15 +98,62 @@ class MessageScheduler:
 
     def due(self, now_s: float) -> list[int]:
         """Messages to send at now_s, in a fixed order; advances their next due time."""
-        out = []
-        for msg_id in STREAMED_MESSAGES.values():
-            interval = self._interval.get(msg_id)
-            if interval is None or now_s + _EPS < self._next[msg_id]:
-                continue
-            out.append(msg_id)
-            nxt = self._next[msg_id] + interval
-            self._next[msg_id] = nxt if nxt > now_s + _EPS else now_s + interval
+        groups = [g for g in self._groups if now_s + _EPS >= g.next_s]
+        if not groups:
+            return []
+        # the longest overdue group first (the first opened of a tie), each whole
+        groups.sort(key=lambda g: g.next_s)
+        out: list[int] = []
+        for g in groups:
+            out.extend(m for m in _ORDER if m in g.members)
+            nxt = g.next_s + g.interval_s
+            g.next_s = nxt if nxt > now_s + _EPS else now_s + g.interval_s
         return out
+
+    def _assign(
+        self, msg_id: int, interval: float | None, now_s: float, first_s: float | None = None
+    ) -> None:
+        """Put msg_id in the group of `interval` (None: off). first_s: when a group opened
+        here first sends (default: as the phases rule says)."""
+        old = self._group_of.get(msg_id)
+        self._interval[msg_id] = interval
+        if old is not None and interval is not None and _same(old.interval_s, interval):
+            return  # already streaming at this interval: the phase stays
+        if self.phases == "per_stream" and old is not None and interval is not None:
+            old.interval_s = interval  # PX4: a streaming message keeps its phase
+            return
+        if old is not None:
+            old.members.discard(msg_id)
+            if not old.members:
+                self._groups.remove(old)
+            del self._group_of[msg_id]
+        if interval is None:
+            return
+        shared = self.phases == "buckets" and msg_id != _HEARTBEAT
+        group = next(
+            (
+                g
+                for g in self._groups
+                if shared and _HEARTBEAT not in g.members and _same(g.interval_s, interval)
+            ),
+            None,
+        )
+        if group is None:
+            if first_s is None:
+                first_s = now_s + interval if self.phases == "buckets" else now_s
+            group = _Group(interval, first_s)
+            self._groups.append(group)
+        group.members.add(msg_id)
+        self._group_of[msg_id] = group
+
+
+_HEARTBEAT = STREAMED_MESSAGES["HEARTBEAT"]
+_ORDER = tuple(STREAMED_MESSAGES.values())
+
+
+def _same(a_s: float, b_s: float) -> bool:
+    """Two intervals that are the same to the microsecond (MAVLink's interval unit)."""
+    return round(a_s * 1e6) == round(b_s * 1e6)
 
 
 @dataclass(frozen=True, slots=True)
