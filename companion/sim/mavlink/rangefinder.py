@@ -35,9 +35,12 @@ from companion.planner.sensors import (
     quaternion_from_boresight_frd,
 )
 from companion.planner.types import FloatArray, VehicleState
+from companion.sim.mavlink.codec import Codec
 from companion.sim.mavlink.models import RangeWorld
 from companion.sim.sensing import SensorFan
 
+_DS = mavlink.MAVLink_distance_sensor_message
+_DS_ID = mavlink.MAVLINK_MSG_ID_DISTANCE_SENSOR
 UINT16_MAX = 65535
 ARDUPILOT_OUT_OF_RANGE_ADD_CM = 100
 _PX4_OUT_OF_RANGE_CM = min(int(np.float32(UINT16_MAX / 100.0) * np.float32(100.0)), UINT16_MAX)
@@ -134,6 +137,26 @@ class Rangefinders:
             for i, cm in enumerate(cms)
             if send is None or send[i]
         ]
+
+    def frames(
+        self, codec: Codec, ranges_m: FloatArray, time_boot_ms: int, send: Any = None
+    ) -> list[bytes]:
+        """`messages`, packed: the same bytes as `codec.encode` of each, in the same order,
+        without building the message objects."""
+        cms = self.currents_cm(ranges_m)
+        pack = _DS.unpacker.pack
+        frame = codec.frame
+        out = []
+        for i, cm in enumerate(cms):
+            if send is None or send[i]:
+                w = self.wire[i]
+                q = w.quaternion
+                payload = pack(
+                    time_boot_ms, w.min_cm, w.max_cm, cm, mavlink.MAV_DISTANCE_SENSOR_LASER,
+                    w.mav_id, w.orientation, 0, 0.0, 0.0, q[0], q[1], q[2], q[3], 0,
+                )  # fmt: skip
+                out.append(frame(_DS_ID, _DS.crc_extra, payload))
+        return out
 
     def message(self, mav: Any, index: int, range_m: float, time_boot_ms: int) -> Any:
         return self._encode(mav, index, self.current_cm(index, range_m), time_boot_ms)

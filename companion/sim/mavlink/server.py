@@ -479,6 +479,10 @@ class SimServer:
         if not len(rf):
             return
         ranges, send = self.sensor_faults.apply(self.t_s, rf.measure(self.state))
+        if out == self._send:  # streamed: packed straight to bytes, as _send would
+            for data in rf.frames(self.codec, ranges, snap.time_boot_ms, send):
+                self._send_frame(data)
+            return
         for msg in rf.messages(self.codec.mav, ranges, snap.time_boot_ms, send):
             out(msg)
 
@@ -510,7 +514,10 @@ class SimServer:
 
     def _send(self, msg: Any) -> None:
         """Encode and send through the outgoing faults (dropped while the link is down)."""
-        data = self.codec.encode(msg)
+        self._send_frame(self.codec.encode(msg))
+
+    def _send_frame(self, data: bytes) -> None:
+        """Send one packed message as `_send` does."""
         if not self._link_up():
             self.stats.dropped_link_down += 1
             return
