@@ -233,6 +233,8 @@ class SimServer:
         self._link_key: tuple[float, float] | None = None
         self._link_state = True
         self._after_ack: list[Any] = []
+        self._home_amsl_key: tuple[float, ...] | None = None
+        self._home_amsl_m = math.nan
         self._commands = self._command_table()
         self._record_truth()
 
@@ -456,8 +458,7 @@ class SimServer:
         elif name == "ATTITUDE":
             out(tm.attitude_message(mav, snap))
         elif name == "GLOBAL_POSITION_INT":
-            home_amsl = ap.frame_context.amsl(ap.home_enu)
-            out(tm.global_position_int_message(mav, snap, self.frame, home_amsl))
+            out(tm.global_position_int_message(mav, snap, self.frame, self._home_amsl()))
         elif name == "LOCAL_POSITION_NED":
             out(tm.local_position_ned_message(mav, snap, ap.origin_enu))
         elif name == "HOME_POSITION":
@@ -473,6 +474,14 @@ class SimServer:
             out(mav.timesync_encode(0, snap.time_ns))
         elif name == "DISTANCE_SENSOR":
             self._send_distance_sensors(snap, out)
+
+    def _home_amsl(self) -> float:
+        """Home's altitude above mean sea level (m), converted again only when home moves."""
+        key = tuple(float(v) for v in self.autopilot.home_enu)
+        if key != self._home_amsl_key:
+            self._home_amsl_key = key
+            self._home_amsl_m = self.autopilot.frame_context.amsl(self.autopilot.home_enu)
+        return self._home_amsl_m
 
     def _send_distance_sensors(self, snap: tm.Snapshot, out: Callable[[Any], None]) -> None:
         rf = self.rangefinders
