@@ -19,6 +19,7 @@ from companion.planner.rotations import r_g
 from companion.planner.sensors import boresight_from_quaternion_frd
 from companion.planner.types import VehicleState
 from companion.sim.mavlink import MavlinkSimConfig, SimServer
+from companion.sim.mavlink import codec as codec_module
 from companion.sim.mavlink.autopilot import Autopilot
 from companion.sim.mavlink.bridge import BridgeCore
 from companion.sim.mavlink.codec import Codec
@@ -565,10 +566,16 @@ def test_all_readings_at_once_are_each_reading_alone() -> None:
         assert all(m.current_distance == 300 and m.time_boot_ms == 77 for m in msgs)
 
 
-def test_packed_distance_sensor_frames_are_the_encoded_messages() -> None:
+@pytest.mark.parametrize("compiled_crc", [True, False])
+def test_packed_distance_sensor_frames_are_the_encoded_messages(
+    compiled_crc: bool, monkeypatch: pytest.MonkeyPatch
+) -> None:
     """`Rangefinders.frames` gives byte for byte what `Codec.encode` gives for `messages`,
     sequence numbers included (across the 255 -> 0 wrap), for both families, custom
-    orientations with their quaternion, readings out of range and dropped sensors."""
+    orientations with their quaternion, readings out of range and dropped sensors; with
+    pymavlink's compiled checksum and with its pure-Python one."""
+    if not compiled_crc:
+        monkeypatch.setattr(codec_module, "_MCRF4XX", None)
     specs = sensors()
     rng = np.random.default_rng(11)
     for family in ("ardupilot", "px4"):

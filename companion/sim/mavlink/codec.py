@@ -16,6 +16,15 @@ from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
 _HEADER = struct.Struct("<BBBBBBBHB")
 _CRC = struct.Struct("<H")
+_MCRF4XX = getattr(mavlink, "mcrf4xx", None)
+"""pymavlink's compiled X.25 checksum (fastcrc's CRC-16/MCRF4XX) where it has one."""
+
+
+def _crc(data: bytes) -> int:
+    """MAVLink's X.25 checksum of data, as pymavlink computes it."""
+    if _MCRF4XX is not None:
+        return int(_MCRF4XX(data, 0xFFFF))
+    return int(mavlink.x25crc(data).crc)
 
 
 class _Sink:
@@ -53,7 +62,7 @@ class Codec:
         header = _HEADER.pack(
             253, end, 0, 0, mav.seq, mav.srcSystem, mav.srcComponent, msg_id & 0xFFFF, msg_id >> 16
         )
-        crc = mavlink.x25crc(header[1:] + body + bytes((crc_extra,))).crc
+        crc = _crc(header[1:] + body + bytes((crc_extra,)))
         data = header + body + _CRC.pack(crc)
         mav.seq = (mav.seq + 1) % 256
         mav.total_packets_sent += 1
