@@ -190,6 +190,8 @@ def test_scheduler_per_stream_phases() -> None:
     sent = _sends(s, 1, 9)
     assert [k for k, d in sent.items() if GPI in d] == [1, 3, 5, 7]
     assert [k for k, d in sent.items() if ATT in d] == [2, 4, 6, 8]
+    s.set_interval_us(ATT, 50_000, 0.09)  # last sent at tick 8: next at 8 + 5
+    assert [k for k, d in _sends(s, 9, 20).items() if ATT in d] == [13, 18]
 
 
 # ---------------------------------------------------------------------------- setpoints

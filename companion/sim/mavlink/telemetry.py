@@ -120,7 +120,9 @@ class MessageScheduler:
         if old is not None and interval is not None and _same(old.interval_s, interval):
             return  # already streaming at this interval: the phase stays
         if self.phases == "per_stream" and old is not None and interval is not None:
-            old.interval_s = interval  # PX4: a streaming message keeps its phase
+            # PX4: a streaming message keeps its last send; the next is one new interval on
+            old.next_s += interval - old.interval_s
+            old.interval_s = interval
             return
         if old is not None:
             old.members.discard(msg_id)
