@@ -87,3 +87,32 @@ def test_moving_inside_d_min_stops_before_it_corrects(monkeypatch: pytest.Monkey
         state = VehicleState(p, 0.0, 0.0, res.setpoint.yaw_rad)
     assert stopped and moving_corrections == 0
     assert planner._mode.value != "route"  # from rest it took a correction away from the wall
+
+
+def test_inside_the_band_x_d_slows_as_the_memory_comes_nearer(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """A flank found nearer than the memory had it, cycle after cycle (its unseen foot coming
+    into view beside the vehicle): inside the re-plan band X_d slows with its clearance, so
+    that it is nearly at rest by the time that clearance reaches D_min (`speed.band_limit`),
+    instead of flying on at v_d and stopping from there."""
+    monkeypatch.setattr(Planner, "_carve", lambda self, *args: None)
+    route = Route(np.array([[0.0, 0.0], [80.0, 0.0]]), 0.0, 0.0)
+    params = PlannerParams()
+    planner = Planner(params, SENSORS, route, np.array([0.0, 0.0, 2.0]))
+    state = VehicleState(np.array([0.0, 0.0, 2.0]), 0.0, 0.0, 0.0)
+    for _ in range(80):  # up to v_d along the route
+        res = planner.step(state, flat_ranges(2.0), 0.05)
+        state = VehicleState(np.array(res.setpoint.position_enu), 0.0, 0.0, 0.0)
+    assert res.diagnostics.speed_ref_mps == pytest.approx(params.v_d_mps)
+    speed_at_d_min = None
+    for k in range(200):
+        x, y = planner._xd_prev[:2]
+        gap = 2.6 - 0.01 * k  # each new point 1 cm nearer than the last
+        planner._memory.add(np.array([[x, y + gap, 2.0]]), 0)
+        res = planner.step(state, flat_ranges(2.0), 0.05)
+        state = VehicleState(np.array(res.setpoint.position_enu), 0.0, 0.0, res.setpoint.yaw_rad)
+        if gap <= params.d_min_m and speed_at_d_min is None:
+            speed_at_d_min = res.diagnostics.speed_ref_mps
+    assert speed_at_d_min is not None
+    assert speed_at_d_min <= 0.2, f"{speed_at_d_min:.2f} m/s where the memory reached D_min"

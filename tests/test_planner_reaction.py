@@ -1,6 +1,7 @@
 """The stop before an obstacle allows for late readings and a trailing position controller
 (`PlannerParams.reaction_time_s`, the vehicle measured ahead of X_d)."""
 
+import itertools
 import math
 
 import numpy as np
@@ -85,6 +86,17 @@ def test_reacting_speed_stops_within_the_distance() -> None:
             assert v * t + v * v / (2 * 0.5) == pytest.approx(d)
     assert speed.reacting_speed(0.5, 0.5, 0.4) < speed.braking_speed(0.5, 0.5)
     assert speed.reacting_speed(0.005, 0.5, 0.4) == 0.0  # no endless creep
+
+
+def test_band_limit_stops_the_vehicle_at_its_floor() -> None:
+    a, t, floor, replan = 0.5, 0.4, 2.0, 2.3
+    assert speed.band_limit(2.3, floor, replan, a, t) == math.inf  # outside the band
+    caps = [speed.band_limit(c, floor, replan, a, t) for c in (2.25, 2.1, 2.0, 1.95, 1.9)]
+    assert all(x > y for x, y in itertools.pairwise(caps))  # slower, nearer
+    assert caps[-1] == 0.0  # BAND_CREEP_M below the floor: at rest
+    for c, v in zip((2.25, 2.1, 2.0), caps, strict=False):
+        # kept up for t, then braking at a: stopped within (c - floor + creep) metres
+        assert v * t + v * v / (2.0 * a) == pytest.approx(c - floor + speed.BAND_CREEP_M)
 
 
 @pytest.mark.parametrize("bad", [-0.1, math.nan, math.inf, 6.0])

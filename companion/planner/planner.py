@@ -296,6 +296,8 @@ class Planner:
         # An accepted correction's stretch inside the re-plan band: arc lengths on the path
         # and the clearances it was accepted with (`_escape_exempt`); None if it has none.
         self._escape: tuple[FloatArray, FloatArray] | None = None
+        # The clearance (m) below which the band's speed cap stops X_d (`_lower_band_floor`).
+        self._band_floor = params.d_min_m
         # Flying straight legs over the grid (`gridpath`): a conflict is met by the grid.
         self._grid_way = False
         # X_d where the blocked state was left without a new path (`_set_blocked`).
@@ -578,13 +580,13 @@ class Planner:
         wide), when that chord is short enough (<= _LOCAL_CHORD_M) to say something about
         the surface at X_i; a long chord (to a ground point far in front) does not, and
         leaves the point as it was seen. Two things follow from theta:
-        - keeping D_min from an inclined flank takes D_min / sin(theta) horizontally; the
-          planner keeps D_min + margin, half of which may go to the slope (the other half
-          covers the surface between rays);
+        - keeping D_min from an inclined flank takes D_min / sin(theta) horizontally, so
+          that a point's inflated disc is D_min away where the flank is (the margin on top
+          is kept whole: the memory's measure is never the optimistic one);
         - the vehicle passes at the height of the ground near X_i, z_g (the lower of the
           chord's other end and the group's ground point), plus H_d, where the flank reaches
           (z_i - z_g - H_d) / tan(theta) nearer than X_i (never past the chord's other end).
-        e = max(0, D_min / sin(theta) - D_min - margin/2) + min(h, max(0, z_i - z_g - H_d)
+        e = max(0, D_min / sin(theta) - D_min) + min(h, max(0, z_i - z_g - H_d)
         / tan(theta)), h the chord's length. The lower part of a flank is measured, not only
         extrapolated: the surface sensors hit it as the vehicle comes near, and their steep
         points enter the memory too.
@@ -637,7 +639,6 @@ class Planner:
             [p[0] - q[0] for p, q in zip(steep_points, lows, strict=True)],
             [p[1] - q[1] for p, q in zip(steep_points, lows, strict=True)],
         ).tolist()
-        slack = params.d_min_m + 0.5 * params.clearance_margin_m
         inflation: list[float] = []
         for r, p, q, h in zip(steep_rows, steep_points, lows, chords, strict=True):
             if h <= _LOCAL_CHORD_M:  # (False for a chord without another end: NaN)
@@ -648,7 +649,7 @@ class Planner:
                 foot = min(h, rise / math.tan(theta))
             else:
                 theta, foot = 0.5 * math.pi, 0.0
-            inflation.append(max(params.d_min_m / math.sin(theta) - slack, 0.0) + foot)
+            inflation.append(max(params.d_min_m / math.sin(theta) - params.d_min_m, 0.0) + foot)
         self._steep_rows = np.asarray(steep_rows, dtype=np.intp)
         return xyz, np.array(inflation)
 
@@ -959,10 +960,23 @@ class Planner:
         self._unblocked_xy = None
         self._say_passed_beside(detour.path, self._xd_prev[:2], detour.rejoin_s, events)
         self._set_path(detour.path, detour.mode, detour.side)
+        self._lower_band_floor()
         if stop_first:
             self._stops = [0.0]
         self._detour_end_s = detour.path.length - (self.route.length - detour.rejoin_s)
         self._escape = self._escape_stretch()
+
+    def _lower_band_floor(self) -> None:
+        """A new path taken at rest inside D_min (as the memory has it) leads out from
+        there: the band's speed cap (`speed.band_limit`) counts from its start, not from
+        D_min, or X_d could not move. A path taken on the move keeps the floor it had, so
+        that re-planning as new points come in cannot lower it step by step."""
+        if self._v > speed.STOPPED_MPS:
+            return
+        look = self._look_ahead()
+        if look.clearance is not None and len(look.s):
+            start = float(look.clearance[0]) - _ESCAPE_TOLERANCE_M
+            self._band_floor = min(self.params.d_min_m, start)
 
     def _say_passed_beside(
         self, path: Path, start_xy: FloatArray, rejoin_s: float, events: list[str]
@@ -1009,6 +1023,7 @@ class Planner:
         self._blocked = False
         self._unblocked_xy = None
         self._set_path(plan.path, PathMode.AROUND, Side.NONE)
+        self._lower_band_floor()
         self._grid_way = True
         self._stops = [0.0, *plan.stops]
         self._detour_end_s = plan.legs_length_m
@@ -1150,6 +1165,15 @@ class Planner:
                     allowance_m=self._ahead_m,
                     rest_margin_m=speed.rest_margin_m(self._v_cruise, params.reaction_time_s),
                 ),
+            )
+        if look.clearance is not None and len(look.s) and self._mode is not PathMode.RETREAT:
+            here = float(look.clearance[0])
+            replan = params.d_min_m + 0.5 * params.clearance_margin_m
+            if here >= replan:
+                self._band_floor = params.d_min_m
+            v = min(
+                v,
+                speed.band_limit(here, self._band_floor, replan, a, params.reaction_time_s),
             )
         return max(v, 0.0)
 

@@ -111,6 +111,29 @@ def clearance_limit(
     return reacting_speed(free, accel_mps2, reaction_s)
 
 
+BAND_CREEP_M = 0.1
+"""`band_limit`: the distance allowed as if D_min were this much nearer, so that X_d inside
+D_min can still creep out, metres."""
+
+
+def band_limit(
+    clearance_m: float,
+    floor_m: float,
+    replan_distance_m: float,
+    accel_mps2: float,
+    reaction_s: float,
+) -> float:
+    """The speed cap of X_d inside the re-plan band (clearance_m, X_d's distance from the
+    remembered points, below replan_distance_m): the speed from which the vehicle stops
+    before that clearance falls to floor_m (D_min, or lower on a way out from a rest
+    inside it), were every metre flown a metre nearer: points seen on the way can be
+    that much nearer than the memory has them. BAND_CREEP_M lets X_d creep at the floor.
+    inf outside the band."""
+    if clearance_m >= replan_distance_m:
+        return math.inf
+    return reacting_speed(clearance_m - floor_m + BAND_CREEP_M, accel_mps2, reaction_s)
+
+
 def ramp(v_mps: float, v_target_mps: float, accel_mps2: float, dt_s: float) -> float:
     """Next cycle's reference speed: towards v_target, up at accel_max and down at twice
     that per cycle of dt_s; snapped to 0 when stopping below STOPPED_MPS."""
