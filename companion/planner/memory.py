@@ -7,12 +7,12 @@ Deterministic: "age" is the planner's cycle count, never a clock.
 
 Each point carries an inflation (metres, >= 0): how much farther than D_min + margin the
 path must stay from it horizontally, because the solid it lies on slopes towards the vehicle
-below it (see `Planner._steep_points`), and the slope it was worked out from (radians; NaN
-when no short chord measured the slope there). A cell's slope only rises over its life: a
-re-observed cell takes the newest position, and the newest inflation only when its slope is
-at least as steep as the one kept (or none was kept). Each measured slope is a lower bound
-on the surface's (a chord's), so the steepest seen is the best one; a reading that measured
-none says nothing and leaves the kept one.
+below it (see `Planner._steep_points`). A re-observed cell takes the newest position. Its
+slope only rises over its life: each measured slope (a short chord's) is a lower bound on the
+surface's, so the steepest measured so far is the best one, and a reading whose slope is
+shallower takes the inflation that came with the steepest. A reading without a measured
+slope (no short chord) is taken as it is (its inflation, usually 0), as before; the steepest
+slope stays for the next measured one.
 
 Storage: the points live in rows ("slots") of one preallocated array; a dict maps each grid
 cell to its slot and keeps the cells oldest first. Adding or replacing a point writes one
@@ -46,7 +46,8 @@ class ObstacleMemory:
         self._xyz = np.empty((_INITIAL_SLOTS, 3))
         self._cycle = np.zeros(_INITIAL_SLOTS, dtype=np.int64)
         self._inflation = np.zeros(_INITIAL_SLOTS)
-        self._slope = np.full(_INITIAL_SLOTS, np.nan)
+        self._slope = np.full(_INITIAL_SLOTS, np.nan)  # the steepest slope measured, rad
+        self._slope_inflation = np.zeros(_INITIAL_SLOTS)  # the inflation that came with it
         self._free: list[int] = list(range(_INITIAL_SLOTS - 1, -1, -1))
         self._xy: FloatArray | None = None
         self._infl: FloatArray | None = None
@@ -67,6 +68,7 @@ class ObstacleMemory:
             self._cycle = np.concatenate([self._cycle, np.zeros(old, dtype=np.int64)])
             self._inflation = np.concatenate([self._inflation, np.zeros(old)])
             self._slope = np.concatenate([self._slope, np.full(old, np.nan)])
+            self._slope_inflation = np.concatenate([self._slope_inflation, np.zeros(old)])
             self._free = list(range(2 * old - 1, old - 1, -1))
         return self._free.pop()
 
@@ -79,8 +81,8 @@ class ObstacleMemory:
     ) -> int:
         """Store points (k, 3) with their inflation (k,) metres (default 0) and the slope
         (k,) radians it comes from (default NaN: none measured); returns how many cells
-        were new. A known cell keeps its inflation unless the new slope is at least as
-        steep as its own, or it has none."""
+        were new. A measured slope shallower than the steepest the cell has had brings
+        that one's inflation instead of its own."""
         new = 0
         inv = 1.0 / self.cell_m
         cells = self._cells
@@ -105,17 +107,17 @@ class ObstacleMemory:
             if slot is None:
                 new += 1
                 slot = self._slot()
-                steeper = True
-            else:
-                # (NaN compares False: a kept slope stays against an unmeasured one.)
-                old = float(self._slope[slot])
-                steeper = not math.isfinite(old) or theta >= old
+                self._slope[slot] = math.nan
             cells[key] = slot
             self._xyz[slot] = (x, y, z)
             self._cycle[slot] = cycle
-            if steeper:
-                self._inflation[slot] = e
-                self._slope[slot] = theta
+            if math.isfinite(theta):
+                kept = float(self._slope[slot])
+                if not theta < kept:  # (also when none was kept: NaN)
+                    self._slope[slot] = theta
+                    self._slope_inflation[slot] = e
+                e = float(self._slope_inflation[slot])
+            self._inflation[slot] = e
             check = self._far_check
             if check is not None:
                 cx, cy, slack = check
