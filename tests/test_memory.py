@@ -14,6 +14,38 @@ def test_one_point_per_cell_newest_wins_with_its_inflation() -> None:
     assert mem.inflation_m().tolist() == [0.1]
 
 
+def test_a_cells_slope_only_rises() -> None:
+    """A measured slope shallower than the steepest the cell has had brings that one's
+    inflation; a steeper one its own; a reading without a slope (NaN: no short chord) is
+    taken as it is, and the steepest stays for the next measured one. The position is
+    always the newest."""
+    mem = ObstacleMemory(0.25, 40.0, 64)
+    p = np.array([[2.01, 0.01, 3.0]])
+    mem.add(p, 1, np.array([0.9]), np.array([0.7]))
+    mem.add(p, 2, np.array([0.2]), np.array([1.1]))  # steeper: its own
+    assert mem.inflation_m().tolist() == [0.2]
+    mem.add(p, 3, np.array([0.8]), np.array([0.75]))  # shallower: the steepest's
+    assert mem.inflation_m().tolist() == [0.2]
+    mem.add(p + 0.05, 4, np.array([0.0]), np.array([np.nan]))  # a long chord: as seen
+    assert mem.inflation_m().tolist() == [0.0]
+    mem.add(p + 0.1, 5, np.array([0.8]), np.array([0.75]))  # the steepest is still kept
+    assert mem.inflation_m().tolist() == [0.2]
+    assert mem.points_xy().tolist() == [[2.11, 0.11]]
+    # A cell with no slope yet takes the first measured one.
+    q = np.array([[5.01, 0.01, 3.0]])
+    mem.add(q, 6, np.array([0.0]), np.array([np.nan]))
+    mem.add(q, 7, np.array([0.6]), np.array([0.8]))
+    assert mem.inflation_m().tolist() == [0.2, 0.6]
+
+
+def test_a_dropped_cells_slope_is_forgotten_with_it() -> None:
+    mem = ObstacleMemory(0.25, 10.0, 64)
+    mem.add(np.array([[1.0, 0.0, 3.0]]), 1, np.array([0.1]), np.array([1.5]))
+    assert mem.forget_far(np.array([50.0, 0.0])) == 1
+    mem.add(np.array([[1.0, 0.0, 3.0]]), 2, np.array([0.7]), np.array([0.6]))
+    assert mem.inflation_m().tolist() == [0.7]
+
+
 def test_inflation_defaults_to_zero_and_is_never_negative_or_nan() -> None:
     mem = ObstacleMemory(0.25, 40.0, 64)
     mem.add(np.array([[0.0, 0.0, 0.0], [5.0, 0.0, 0.0]]), 1)

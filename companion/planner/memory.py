@@ -7,7 +7,12 @@ Deterministic: "age" is the planner's cycle count, never a clock.
 
 Each point carries an inflation (metres, >= 0): how much farther than D_min + margin the
 path must stay from it horizontally, because the solid it lies on slopes towards the vehicle
-below it (see `planner._inflation`). A re-observed cell takes the newest inflation.
+below it (see `Planner._steep_points`). A re-observed cell takes the newest position. Its
+slope only rises over its life: each measured slope (a short chord's) is a lower bound on the
+surface's, so the steepest measured so far is the best one, and a reading whose slope is
+shallower takes the inflation that came with the steepest. A reading without a measured
+slope (no short chord) is taken as it is (its inflation, usually 0), as before; the steepest
+slope stays for the next measured one.
 
 Storage: the points live in rows ("slots") of one preallocated array; a dict maps each grid
 cell to its slot and keeps the cells oldest first. Adding or replacing a point writes one
@@ -41,6 +46,8 @@ class ObstacleMemory:
         self._xyz = np.empty((_INITIAL_SLOTS, 3))
         self._cycle = np.zeros(_INITIAL_SLOTS, dtype=np.int64)
         self._inflation = np.zeros(_INITIAL_SLOTS)
+        self._slope = np.full(_INITIAL_SLOTS, np.nan)  # the steepest slope measured, rad
+        self._slope_inflation = np.zeros(_INITIAL_SLOTS)  # the inflation that came with it
         self._free: list[int] = list(range(_INITIAL_SLOTS - 1, -1, -1))
         self._xy: FloatArray | None = None
         self._infl: FloatArray | None = None
@@ -60,21 +67,38 @@ class ObstacleMemory:
             self._xyz = np.concatenate([self._xyz, np.empty((old, 3))])
             self._cycle = np.concatenate([self._cycle, np.zeros(old, dtype=np.int64)])
             self._inflation = np.concatenate([self._inflation, np.zeros(old)])
+            self._slope = np.concatenate([self._slope, np.full(old, np.nan)])
+            self._slope_inflation = np.concatenate([self._slope_inflation, np.zeros(old)])
             self._free = list(range(2 * old - 1, old - 1, -1))
         return self._free.pop()
 
-    def add(self, points_enu: FloatArray, cycle: int, inflation_m: FloatArray | None = None) -> int:
-        """Store points (k, 3) with their inflation (k,) metres (default 0); returns how many
-        cells were new."""
+    def add(
+        self,
+        points_enu: FloatArray,
+        cycle: int,
+        inflation_m: FloatArray | None = None,
+        slope_rad: FloatArray | None = None,
+    ) -> int:
+        """Store points (k, 3) with their inflation (k,) metres (default 0) and the slope
+        (k,) radians it comes from (default NaN: none measured); returns how many cells
+        were new. A measured slope shallower than the steepest the cell has had brings
+        that one's inflation instead of its own."""
         new = 0
         inv = 1.0 / self.cell_m
         cells = self._cells
         pts = np.asarray(points_enu, dtype=np.float64).reshape(-1, 3)
-        if inflation_m is None:
-            inflation = [0.0] * len(pts)
-        else:
-            inflation = np.asarray(inflation_m, dtype=np.float64).reshape(-1).tolist()
-        for (x, y, z), e in zip(pts.tolist(), inflation, strict=True):
+        k = len(pts)
+        inflation = (
+            [0.0] * k
+            if inflation_m is None
+            else np.asarray(inflation_m, dtype=np.float64).reshape(-1).tolist()
+        )
+        slopes = (
+            [math.nan] * k
+            if slope_rad is None
+            else np.asarray(slope_rad, dtype=np.float64).reshape(-1).tolist()
+        )
+        for (x, y, z), e, theta in zip(pts.tolist(), inflation, slopes, strict=True):
             if not (math.isfinite(x) and math.isfinite(y) and math.isfinite(z)):
                 continue
             e = e if math.isfinite(e) and e > 0.0 else 0.0
@@ -83,9 +107,16 @@ class ObstacleMemory:
             if slot is None:
                 new += 1
                 slot = self._slot()
+                self._slope[slot] = math.nan
             cells[key] = slot
             self._xyz[slot] = (x, y, z)
             self._cycle[slot] = cycle
+            if math.isfinite(theta):
+                kept = float(self._slope[slot])
+                if not theta < kept:  # (also when none was kept: NaN)
+                    self._slope[slot] = theta
+                    self._slope_inflation[slot] = e
+                e = float(self._slope_inflation[slot])
             self._inflation[slot] = e
             check = self._far_check
             if check is not None:

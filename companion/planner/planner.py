@@ -385,12 +385,12 @@ class Planner:
         detected = valid[obs]
         ground = self._ground_points(points, surface, state)
         phi_star = steepness(points[obs], ground, detected)
-        steep_xyz, steep_inflation = self._steep_points(
+        steep_xyz, steep_inflation, steep_slope = self._steep_points(
             points, valid, valid_list, detected, ground, phi_star
         )
         if self._sector_rows.size and len(steep_xyz):
-            steep_xyz, steep_inflation = self._sector_arcs(
-                state.position_enu, rot, ranges, valid, steep_xyz, steep_inflation
+            steep_xyz, steep_inflation, steep_slope = self._sector_arcs(
+                state.position_enu, rot, ranges, valid, steep_xyz, steep_inflation, steep_slope
             )
         phi_d = 0.0  # no ground in view: hold the height
         if x_z is not None:
@@ -400,7 +400,7 @@ class Planner:
         decision = decide(phi_star, self._thresholds)
         self._carve(state, rot, ranges, valid)
         if len(steep_xyz):
-            self._memory.add(steep_xyz, self._cycle, steep_inflation)
+            self._memory.add(steep_xyz, self._cycle, steep_inflation, steep_slope)
         self._memory.forget_far(state.position_enu[:2])
         nearest = min(
             [r for r, ok in zip(ranges[obs].tolist(), detected.tolist(), strict=True) if ok],
@@ -570,9 +570,10 @@ class Planner:
         detected: BoolArray,
         ground: FloatArray,
         phi_star: FloatArray,
-    ) -> tuple[FloatArray, FloatArray]:
-        """The points measured this cycle that are too steep to climb, (k, 3), and the
-        inflation of each, (k,) metres. phi_star (eq. 6, per obstacle sensor) is raised in
+    ) -> tuple[FloatArray, FloatArray, FloatArray]:
+        """The points measured this cycle that are too steep to climb, (k, 3), the
+        inflation of each, (k,) metres, and the slope theta it comes from, (k,) radians
+        (NaN where no short chord measured it). phi_star (eq. 6, per obstacle sensor) is raised in
         place to the steepest chord through each obstacle reading.
 
         Inflation: the solid below a steep point X_i slopes towards the vehicle at about
@@ -613,7 +614,7 @@ class Planner:
         steep = valid & (phi_row > self._row_threshold)
         if not steep.any():  # the usual cycle: nothing to remember
             phi_star[:] = raised
-            return _NO_POINTS, _NO_INFLATION
+            return _NO_POINTS, _NO_INFLATION, _NO_INFLATION
         # Where eq. (6)'s own chord is the steeper one, its other end is the ground point.
         eq6 = (detected & (phi_star >= chord_obs)).tolist()
         phi_star[:] = raised
@@ -640,6 +641,7 @@ class Planner:
             [p[1] - q[1] for p, q in zip(steep_points, lows, strict=True)],
         ).tolist()
         inflation: list[float] = []
+        slope: list[float] = []
         for r, p, q, h in zip(steep_rows, steep_points, lows, chords, strict=True):
             if h <= _LOCAL_CHORD_M:  # (False for a chord without another end: NaN)
                 theta = float(phi_row[r])
@@ -647,11 +649,13 @@ class Planner:
                 z_g = q[2] if k is None else min(q[2], ground_points[k][2])
                 rise = max(p[2] - z_g - self._h_d, 0.0)
                 foot = min(h, rise / math.tan(theta))
+                slope.append(theta)
             else:
                 theta, foot = 0.5 * math.pi, 0.0
+                slope.append(math.nan)
             inflation.append(max(params.d_min_m / math.sin(theta) - params.d_min_m, 0.0) + foot)
         self._steep_rows = np.asarray(steep_rows, dtype=np.intp)
-        return xyz, np.array(inflation)
+        return xyz, np.array(inflation), np.array(slope)
 
     def _sector_arcs(
         self,
@@ -661,17 +665,19 @@ class Planner:
         valid: BoolArray,
         xyz: FloatArray,
         inflation: FloatArray,
-    ) -> tuple[FloatArray, FloatArray]:
+        slope: FloatArray,
+    ) -> tuple[FloatArray, FloatArray, FloatArray]:
         """A steep reading of a sensor with a field of view (a proximity sector) says that
         the nearest object in the sector is at that range, not where on the arc: the whole
         arc across the sector, points _SECTOR_ARC_SPACING_M apart, enters the memory with
-        the boresight point's inflation. (k, 3) points and (k,) inflations, the arcs added."""
+        the boresight point's inflation and slope. (k, 3) points, (k,) inflations and (k,)
+        slopes, the arcs added."""
         rows = self._steep_rows
         fov = self.sensors.fov_rad[rows]
         sector = fov > 0.0
         if not sector.any():
-            return xyz, inflation
-        extra_xyz, extra_inflation = [xyz], [inflation]
+            return xyz, inflation, slope
+        extra_xyz, extra_inflation, extra_slope = [xyz], [inflation], [slope]
         for k in np.flatnonzero(sector):
             i = int(rows[k])
             r = float(ranges[i])
@@ -679,7 +685,8 @@ class Planner:
             fan = sector_fan_flu(self.sensors.boresights_flu[i], float(fov[k]), n)
             extra_xyz.append(position_enu + r * (fan @ rot.T))
             extra_inflation.append(np.full(n, inflation[k]))
-        return np.vstack(extra_xyz), np.concatenate(extra_inflation)
+            extra_slope.append(np.full(n, slope[k]))
+        return np.vstack(extra_xyz), np.concatenate(extra_inflation), np.concatenate(extra_slope)
 
     def _path_heading(self) -> float:
         return self._path.segments[self._segment].heading(self._t)

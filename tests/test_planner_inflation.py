@@ -1,0 +1,94 @@
+"""Inflation of remembered steep points: a vertical wall passed at a few metres sheds the
+inflation its shallow early chords gave it; a 45-degree flank keeps what its slope needs.
+
+The vehicle is moved by hand along a straight line beside the solid (x from 0 to 20 m), its
+gap to the solid's face at flight height narrowing from 4.4 m to 2.9 m at x = 10 and widening
+again; the ranges are ray-cast in the simulator's world."""
+
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+
+from companion.harness.closed_loop import sense
+from companion.planner import Planner, PlannerParams, Route, VehicleState
+from companion.planner.memory import ObstacleMemory
+from companion.sim.sensing import SensorFan
+from companion.sim.world import World
+from companion.sim.world.schema import WorldConfig
+from companion.tuning import SensorConfig, sensor_table
+
+CONFIG = Path(__file__).parent.parent / "config/sensors"
+FACE_Y = 5.5
+"""The solid's face at flight height (2 m) runs along y = FACE_Y, metres."""
+WALL = {"type": "box", "center": [10.0, FACE_Y + 0.5], "size_m": [24.0, 1.0, 10.0]}
+
+
+def _mesa(slope_deg: float) -> dict:  # type: ignore[type-arg]
+    """A mesa 8 m high whose flank crosses flight height (2 m) along y = FACE_Y."""
+    edge = FACE_Y + 6.0 / math.tan(math.radians(slope_deg))
+    return {
+        "type": "mesa",
+        "center": [10.0, edge + 40.0],
+        "radius_m": 40.0,
+        "height_m": 8.0,
+        "side_slope_deg": slope_deg,
+    }
+
+
+def _pass_by(feature: dict, layout: str) -> ObstacleMemory:  # type: ignore[type-arg]
+    world = World.from_config(WorldConfig.model_validate({"features": [feature]}), Path("."))
+    specs = yaml.safe_load((CONFIG / f"{layout}.yaml").read_text())
+    sensors = sensor_table([SensorConfig.model_validate(s) for s in specs])
+    route = Route(np.array([[0.0, 0.0], [60.0, 0.0]]), 0.0, 0.0)
+    planner = Planner(PlannerParams(), sensors, route, np.array([0.0, 0.0, 2.0]))
+    fan = SensorFan(sensors.boresights_flu, sensors.fov_rad)
+    for x in np.arange(0.0, 20.0, 0.05):
+        gap = 4.4 - 1.5 * (1.0 - abs(x - 10.0) / 10.0)
+        state = VehicleState(np.array([x, FACE_Y - gap, 2.0]), 0.0, 0.0, 0.0)
+        planner.step(state, sense(world, sensors, state, fan), 0.05)
+    return planner._memory
+
+
+def _middle(memory: ObstacleMemory) -> tuple[np.ndarray, np.ndarray]:
+    """Inflation (k,) and slope (k,) radians of the points on the middle 8 m of the face."""
+    xy = memory.points_xy()
+    slots = np.fromiter(memory._cells.values(), dtype=np.intp, count=len(memory))
+    on = (xy[:, 0] > 6.0) & (xy[:, 0] < 14.0) & (xy[:, 1] > FACE_Y - 1.5)
+    return memory.inflation_m()[on], memory._slope[slots][on]
+
+
+def test_a_wall_passed_close_sheds_the_inflation_of_its_shallow_chords(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """Ring-8 sectors and tilted surface sensors: a wall 4.4 m away reads 39 degrees (the
+    chord to the ground point 2 m out), 2.9 m away 66 degrees. Newest-wins kept what the
+    receding half of the pass read; the steepest kept sheds most of it."""
+    kept, _ = _middle(_pass_by(WALL, "ring-8"))
+    add = ObstacleMemory.add
+
+    def newest_wins(self, points, cycle, inflation_m=None, slope_rad=None):  # type: ignore[no-untyped-def]
+        return add(self, points, cycle, inflation_m)
+
+    monkeypatch.setattr(ObstacleMemory, "add", newest_wins)
+    newest, _ = _middle(_pass_by(WALL, "ring-8"))
+    assert len(kept) > 50 and len(newest) > 50
+    assert float(kept.mean()) <= 0.5 * float(newest.mean())
+    assert float(kept.mean()) <= 0.2
+
+
+@pytest.mark.parametrize("layout", ["ring-8", "horizontal-7", "paper-11"])
+@pytest.mark.parametrize("slope_deg", [45.0, 55.0])
+def test_a_sloped_flank_keeps_the_inflation_its_slope_needs(layout: str, slope_deg: float) -> None:
+    """No slope kept steeper than the flank's, so every point whose slope was measured
+    carries at least D_min / sin(theta) - D_min - margin/2 (0.53 m at 45 degrees)."""
+    params = PlannerParams()
+    theta = math.radians(slope_deg)
+    needed = params.d_min_m / math.sin(theta) - params.d_min_m - 0.5 * params.clearance_margin_m
+    inflation, slope = _middle(_pass_by(_mesa(slope_deg), layout))
+    measured = np.isfinite(slope) & (inflation > 0.0)
+    assert measured.sum() >= 20
+    assert float(np.nanmax(slope)) <= theta + math.radians(0.5)
+    assert float(inflation[measured].min()) >= needed - 0.01
