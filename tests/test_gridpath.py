@@ -84,3 +84,25 @@ def test_where_corrections_skip_the_base_point_the_grid_reaches_it() -> None:
     assert plan is not None
     end = plan.path.segments[len(plan.stops) - 1].evaluate(1.0)
     np.testing.assert_allclose(end, [24.0, 0.0], atol=1e-12)
+
+
+def test_the_grid_blocks_exactly_the_cells_within_reach() -> None:
+    """The rasterised memory (row intervals) against every cell centre measured to every
+    point: the same cells, with inflations of several sizes and points off the grid."""
+    from companion.planner.gridpath import CELL_M, _Grid
+
+    rng = np.random.default_rng(5)
+    pts = rng.uniform([-12.0, -9.0], [14.0, 11.0], size=(300, 2))
+    inflation = np.where(rng.random(300) < 0.3, rng.uniform(0.0, 1.8, 300), 0.0)
+    start, goal = np.array([-3.0, 0.0]), np.array([4.0, 2.0])
+    grid = _Grid.around(start, goal, pts, inflation, D_M, np.inf)
+    ny, nx = grid.blocked.shape
+    iy, ix = np.mgrid[0:ny, 0:nx]
+    centres = np.stack(
+        [grid.origin[0] + (ix + 0.5) * CELL_M, grid.origin[1] + (iy + 0.5) * CELL_M], -1
+    )
+    d = np.hypot(centres[..., None, 0] - pts[:, 0], centres[..., None, 1] - pts[:, 1])
+    reach = D_M + inflation + CELL_M * np.sqrt(0.5)
+    expected = (d <= reach).any(axis=-1)
+    assert grid.blocked.any()
+    assert np.array_equal(grid.blocked, expected)

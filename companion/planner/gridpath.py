@@ -112,9 +112,9 @@ class _Grid:
         start_clear_m: float,
     ) -> _Grid:
         """The grid over start and goal grown by MARGIN_M; a cell is blocked when its centre
-        is within keep_m + the point's inflation + half a cell diagonal of a point. Around a
-        start already closer than keep_m, the cells it needs to get out are left free (the
-        check of the legs holds it to avoidance.ESCAPE_SLOPE)."""
+        is within keep_m + the point's inflation + half a cell diagonal of a point
+        (`_discs`). Around a start already closer than keep_m, the cells it needs to get out
+        are left free (the check of the legs holds it to avoidance.ESCAPE_SLOPE)."""
         lo = np.minimum(start, goal) - MARGIN_M
         hi = np.maximum(start, goal) + MARGIN_M
         nx, ny = (np.ceil((hi - lo) / CELL_M).astype(int) + 1).tolist()
@@ -123,17 +123,7 @@ class _Grid:
         near = np.all((obstacles >= lo - reach[:, None]) & (obstacles <= hi + reach[:, None]), 1)
         pts, reach = obstacles[near], reach[near]
         if len(pts):
-            r_cells = math.ceil(float(reach.max()) / CELL_M)
-            span = np.arange(-r_cells, r_cells + 1)
-            off = np.stack(np.meshgrid(span, span), -1).reshape(-1, 2)  # (m, 2) as (dx, dy)
-            base = np.floor((pts - lo) / CELL_M).astype(int)  # (k, 2) as (ix, iy)
-            cells = base[:, None, :] + off[None, :, :]  # (k, m, 2)
-            centres = lo + (cells + 0.5) * CELL_M
-            dist = np.hypot(centres[..., 0] - pts[:, 0, None], centres[..., 1] - pts[:, 1, None])
-            inside = (dist <= reach[:, None]) & (cells[..., 0] >= 0) & (cells[..., 1] >= 0)
-            inside &= (cells[..., 0] < nx) & (cells[..., 1] < ny)
-            hit = cells[inside]
-            blocked[hit[:, 1], hit[:, 0]] = True
+            blocked |= _discs(blocked.shape, lo, pts, reach)
         if start_clear_m < keep_m:
             free_r = keep_m - start_clear_m + 2.0 * CELL_M
             iy, ix = np.mgrid[0:ny, 0:nx]
@@ -163,6 +153,30 @@ class _Grid:
         if np.any(idx < 0) or np.any(idx[:, 0] >= nx) or np.any(idx[:, 1] >= ny):
             return False
         return not bool(self.blocked[idx[:, 1], idx[:, 0]].any())
+
+
+def _discs(shape: tuple[int, int], lo: FloatArray, pts: FloatArray, reach: FloatArray) -> BoolArray:
+    """Cells of a grid (shape (ny, nx), origin lo) whose centre lies within each point's
+    reach (metres), row by row: in the row of centre height y a point covers the cells whose
+    centre is within sqrt(reach^2 - (y - y_p)^2) of x_p, one interval, marked at its ends in
+    a difference array and summed along the row."""
+    ny, nx = shape
+    rows = np.ceil(reach / CELL_M).astype(int)
+    span = np.arange(-int(rows.max()), int(rows.max()) + 1)
+    iy = np.floor((pts[:, 1] - lo[1]) / CELL_M).astype(int)[:, None] + span[None, :]  # (k, m)
+    dy = lo[1] + (iy + 0.5) * CELL_M - pts[:, 1, None]
+    half_sq = reach[:, None] ** 2 - dy**2
+    ok = (half_sq >= 0.0) & (iy >= 0) & (iy < ny)
+    half = np.sqrt(np.where(ok, half_sq, 0.0))
+    x = (pts[:, 0, None] - lo[0]) / CELL_M - 0.5  # the point's x in cell-centre units
+    ix0 = np.maximum(np.ceil(x - half / CELL_M).astype(int), 0)
+    ix1 = np.minimum(np.floor(x + half / CELL_M).astype(int), nx - 1)
+    ok &= ix0 <= ix1
+    ends = np.zeros((ny, nx + 1), dtype=np.int32)
+    np.add.at(ends, (iy[ok], ix0[ok]), 1)
+    np.add.at(ends, (iy[ok], ix1[ok] + 1), -1)
+    covered: BoolArray = np.cumsum(ends[:, :nx], axis=1) > 0
+    return covered
 
 
 def _astar(
