@@ -106,3 +106,19 @@ def test_the_grid_blocks_exactly_the_cells_within_reach() -> None:
     expected = (d <= reach).any(axis=-1)
     assert grid.blocked.any()
     assert np.array_equal(grid.blocked, expected)
+
+
+def test_sight_lines_in_one_array_are_the_sight_lines_one_by_one() -> None:
+    from companion.planner.gridpath import _Grid
+
+    rng = np.random.default_rng(11)
+    pts = rng.uniform([-12.0, -9.0], [14.0, 11.0], size=(40, 2))
+    grid = _Grid.around(np.array([-3.0, 0.0]), np.array([4.0, 2.0]), pts, np.zeros(40), 1.0, np.inf)
+    seen = []
+    for _ in range(20):
+        a = rng.uniform([-20.0, -17.0], [21.0, 19.0])
+        ends = rng.uniform([-22.0, -19.0], [23.0, 21.0], size=(25, 2))  # some off the grid
+        one_by_one = [grid.clear_line(a, b) for b in ends]
+        assert grid.clear_lines(a, ends).tolist() == one_by_one
+        seen += one_by_one
+    assert 0 < sum(seen) < len(seen)  # clear and blocked lines both met

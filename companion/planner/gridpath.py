@@ -42,6 +42,8 @@ MAX_EXPANSIONS = 60_000
 """A search that expands more cells than this gives up (bounded work)."""
 BASE_POINTS_TRIED = 2
 """How many base points ahead are tried as the goal, nearest first."""
+SIGHT_BATCH = 32
+"""Sight lines tested in one array when pulling the cell path taut."""
 _NEIGHBOURS = ((1, 0), (-1, 0), (0, 1), (0, -1), (1, 1), (1, -1), (-1, 1), (-1, -1))
 
 
@@ -144,6 +146,27 @@ class _Grid:
         ix, iy = self.cell(xy)
         return bool(self.blocked[iy, ix])
 
+    def clear_lines(self, a: FloatArray, ends: FloatArray) -> BoolArray:
+        """`clear_line(a, b)` for every b of ends (k, 2) at once: the same samples (np.linspace's
+        own steps), one array for all the lines."""
+        ny, nx = self.blocked.shape
+        span = ends - a[None, :]
+        counts = np.maximum(2, np.ceil(np.hypot(span[:, 0], span[:, 1]) / (0.25 * CELL_M)) + 1)
+        counts = counts.astype(int)
+        line = np.repeat(np.arange(len(ends)), counts)
+        first = np.concatenate([[0], np.cumsum(counts)[:-1]])
+        k = np.arange(int(counts.sum())) - np.repeat(first, counts)
+        t = k * np.repeat(1.0 / (counts - 1), counts)
+        t[first + counts - 1] = 1.0  # as np.linspace sets its stop
+        xy = a[None, :] + t[:, None] * span[line]
+        idx = np.floor((xy - self.origin) / CELL_M).astype(int)
+        out = (idx[:, 0] < 0) | (idx[:, 1] < 0) | (idx[:, 0] >= nx) | (idx[:, 1] >= ny)
+        hit = out.copy()
+        inside = ~out
+        hit[inside] = self.blocked[idx[inside, 1], idx[inside, 0]]
+        clear: BoolArray = ~np.logical_or.reduceat(hit, first)
+        return clear
+
     def clear_line(self, a: FloatArray, b: FloatArray) -> bool:
         """True if no blocked cell lies under the segment a-b (sampled every quarter cell)."""
         n = max(2, math.ceil(float(np.hypot(*(b - a))) / (0.25 * CELL_M)) + 1)
@@ -236,15 +259,25 @@ def _pull_taut(
     (or the goal) in clear sight; yields every EXPANSIONS_PER_UNIT sight lines. Corners
     from start to goal."""
     points = [start, *(grid.centre(ix, iy) for ix, iy in cells[1:-1]), goal]
+    xy = np.array(points)
     corners = [start]
     i, lines = 0, 0
     while i < len(points) - 1:
+        # The farthest clear j, looked for from the end SIGHT_BATCH lines at a time; the
+        # lines counted (and the units yielded) are those a one-by-one scan would test.
         j = len(points) - 1
-        while j > i + 1 and not grid.clear_line(points[i], points[j]):
-            j -= 1
-            lines += 1
-            if lines % EXPANSIONS_PER_UNIT == 0:
-                yield
+        while j > i + 1:
+            lo = max(i + 2, j - SIGHT_BATCH + 1)
+            clear = np.flatnonzero(grid.clear_lines(xy[i], xy[lo : j + 1]))
+            found = lo + int(clear[-1]) if len(clear) else None
+            stop = found if found is not None else lo - 1
+            for _ in range(j - max(stop, i + 1)):
+                lines += 1
+                if lines % EXPANSIONS_PER_UNIT == 0:
+                    yield
+            j = stop if found is None else found
+            if found is not None:
+                break
         corners.append(points[j])
         i = j
     return corners
