@@ -116,3 +116,25 @@ def test_inside_the_band_x_d_slows_as_the_memory_comes_nearer(
             speed_at_d_min = res.diagnostics.speed_ref_mps
     assert speed_at_d_min is not None
     assert speed_at_d_min <= 0.2, f"{speed_at_d_min:.2f} m/s where the memory reached D_min"
+
+
+def test_held_at_rest_by_the_band_limit_it_looks_for_a_way_out(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """X_d at rest on a path whose floor is above its clearance (points seen since the path
+    was taken are nearer): the band's limit gives it no speed, so it searches from rest, as
+    when blocked, instead of waiting for good (random world 52, paper-11, stood 290 s)."""
+    monkeypatch.setattr(Planner, "_carve", lambda self, *args: None)
+    planner = _beside_a_wall(1.8)
+    state = VehicleState(np.array([0.0, 0.0, 2.0]), 0.0, 0.0, 0.0)
+    planner.step(state, flat_ranges(2.0), 0.05)
+    planner._v = 0.0  # at rest on the path just taken, its floor as if taken on the move
+    planner._band_floor = planner.params.d_min_m
+    speeds, replans = [], 0
+    for _ in range(60):
+        res = planner.step(state, flat_ranges(2.0), 0.05)
+        speeds.append(res.diagnostics.speed_ref_mps)
+        replans += res.diagnostics.replanned
+        state = VehicleState(np.array(res.setpoint.position_enu), 0.0, 0.0, res.setpoint.yaw_rad)
+    assert replans >= 1
+    assert max(speeds) > 0.1

@@ -807,6 +807,10 @@ class Planner:
         conflict_samples = look.clearance < trigger if look.conflict else None
         if conflict_samples is not None and self._escape is not None and not self._blocked:
             conflict_samples &= ~self._escape_exempt(look.s, look.clearance)
+        if self._band_pinned(look):
+            # Held at rest by the band's speed limit (points seen since the path was taken
+            # are nearer than its floor): look for a way out from here, as when blocked.
+            conflict_samples = look.clearance < trigger
         if conflict_samples is None or not conflict_samples.any():
             self._blocked = False
             self._search = None
@@ -972,6 +976,27 @@ class Planner:
             self._stops = [0.0]
         self._detour_end_s = detour.path.length - (self.route.length - detour.rejoin_s)
         self._escape = self._escape_stretch()
+
+    def _band_pinned(self, look: _LookAhead) -> bool:
+        """X_d at rest, not blocked, on a path the band's speed limit gives no speed at all
+        (`speed.band_limit`): nothing else would make it move or search again."""
+        if (
+            self._blocked
+            or self._v > speed.STOPPED_MPS
+            or self._mode is PathMode.RETREAT
+            or look.clearance is None
+            or len(look.s) == 0
+        ):
+            return False
+        params = self.params
+        cap = speed.band_limit(
+            float(look.clearance[0]),
+            self._band_floor,
+            params.d_min_m + 0.5 * params.clearance_margin_m,
+            params.accel_max_mps2,
+            params.reaction_time_s,
+        )
+        return cap == 0.0
 
     def _lower_band_floor(self) -> None:
         """A new path taken at rest inside D_min (as the memory has it) leads out from
