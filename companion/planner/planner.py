@@ -988,15 +988,15 @@ class Planner:
             or len(look.s) == 0
         ):
             return False
+        return self._band_cap(float(look.clearance[0])) == 0.0
+
+    def _band_cap(self, clearance_m: float) -> float:
+        """`speed.band_limit` for X_d at clearance_m (m) from the memory, with this path's floor."""
         params = self.params
-        cap = speed.band_limit(
-            float(look.clearance[0]),
-            self._band_floor,
-            params.d_min_m + 0.5 * params.clearance_margin_m,
-            params.accel_max_mps2,
-            params.reaction_time_s,
+        replan = params.d_min_m + 0.5 * params.clearance_margin_m
+        return speed.band_limit(
+            clearance_m, self._band_floor, replan, params.accel_max_mps2, params.reaction_time_s
         )
-        return cap == 0.0
 
     def _lower_band_floor(self) -> None:
         """A new path taken at rest inside D_min (as the memory has it) leads out from
@@ -1203,10 +1203,7 @@ class Planner:
             replan = params.d_min_m + 0.5 * params.clearance_margin_m
             if here >= replan:
                 self._band_floor = params.d_min_m
-            v = min(
-                v,
-                speed.band_limit(here, self._band_floor, replan, a, params.reaction_time_s),
-            )
+            v = min(v, self._band_cap(here))
         return max(v, 0.0)
 
 
