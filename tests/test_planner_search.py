@@ -13,6 +13,7 @@ from companion.planner.avoidance import AvoidanceRequest, detour_search, plan_de
 from companion.planner.bezier import CubicBezier, _real_roots_quadratic
 from companion.planner.decision import chord_steepness
 from companion.planner.retreat import RETREAT_STEPS_M, backwards_track, retreat_search
+from companion.planner.speed import STOPPED_MPS
 from companion.planner.types import Side
 from tests.test_planner import SENSORS, flat_ranges
 
@@ -210,3 +211,40 @@ def test_route_tail_is_kept_and_equals_the_split() -> None:
         assert len(tail) == len(split)
         assert all(np.array_equal(a.control, b.control) for a, b in zip(tail, split, strict=True))
         assert route.tail_from(s) is tail
+
+
+def test_blocked_on_the_move_searches_again_only_at_rest() -> None:
+    """A search from a moving X_d that fails stops the vehicle; while it stops, no cycle
+    searches again (each would start afresh from a new point and spend a whole budget);
+    at rest it does."""
+    planner = Planner(PARAMS, SENSORS, ROUTE, np.array([0.0, 0.0, 2.0]))
+    ranges = flat_ranges(2.0)
+    state = VehicleState(np.array([0.0, 0.0, 2.0]), 0.0, 0.0, 0.0)
+    for _ in range(80):  # up to speed on flat ground
+        state = VehicleState(
+            planner.step(state, ranges, 0.05).setpoint.position_enu.copy(), 0, 0, 0
+        )
+    assert planner._v > 0.5
+    x = float(state.position_enu[0])
+    sides = np.arange(x - 10.0, x + 8.0, 0.25)
+    pocket = np.vstack(  # too narrow to pass keeping D_min, closed 8 m ahead
+        [
+            wall(x + 8.0, -12.0, 12.0),
+            np.column_stack([sides, np.full(len(sides), 2.5)]),
+            np.column_stack([sides, np.full(len(sides), -2.5)]),
+        ]
+    )
+    planner._memory.add(np.column_stack([pocket, np.full(len(pocket), 2.0)]), 0)
+    stopping = searched_at_rest = 0
+    for _ in range(400):
+        was_blocked, v_before = planner._blocked, planner._v
+        d = planner.step(state, ranges, 0.05).diagnostics
+        state = VehicleState(planner._xd_prev.copy(), 0.0, 0.0, 0.0)
+        if was_blocked and v_before > STOPPED_MPS:
+            stopping += 1
+            assert d.search_units == 0
+        elif v_before <= STOPPED_MPS and d.search_units > 0:
+            searched_at_rest += 1
+            break
+    assert stopping >= 5
+    assert searched_at_rest == 1

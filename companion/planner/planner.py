@@ -817,6 +817,12 @@ class Planner:
             return False
         if self._mode is PathMode.RETREAT and not self._blocked:
             return False  # backing out along the covered track: it is known to be free
+        if self._blocked and self._v > speed.STOPPED_MPS:
+            # Stopping for a conflict that no correction from the moving X_d could clear: the
+            # search starts again once at rest. (While it stops, X_d moves every cycle, and
+            # a search from each new point would start afresh and spend a whole budget.)
+            self._search = None
+            return False
         if (
             not self._blocked
             and self._v <= speed.STOPPED_MPS
