@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 
 import numpy as np
 
@@ -41,6 +42,14 @@ def thresholds(groups: tuple[Group, ...], params: PlannerParams) -> FloatArray:
 def decide(phi_star: FloatArray, threshold: FloatArray) -> Decision:
     """Eq. (7) decision: horizontal if any phi_i* exceeds its threshold, else vertical."""
     return Decision.HORIZONTAL if (phi_star > threshold).any() else Decision.VERTICAL
+
+
+def decide_rows(phi_star: Sequence[float], threshold: Sequence[float]) -> Decision:
+    """`decide` on plain floats (the planner's per-cycle path): the same comparisons."""
+    for p, t in zip(phi_star, threshold, strict=True):
+        if p > t:
+            return Decision.HORIZONTAL
+    return Decision.VERTICAL
 
 
 def chord_steepness(points: FloatArray, min_separation_m: float) -> tuple[FloatArray, IntArray]:

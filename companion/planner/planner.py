@@ -42,7 +42,7 @@ from companion.planner.avoidance import (
     min_distance_within,
     passed_beside,
 )
-from companion.planner.decision import chord_steepness_rows, decide, steepness, thresholds
+from companion.planner.decision import chord_steepness_rows, decide_rows, steepness, thresholds
 from companion.planner.frames import wrap_pi
 from companion.planner.gridpath import GridPlan, grid_search
 from companion.planner.ground import GroundPoints, offsets_from_fit
@@ -236,6 +236,7 @@ class Planner:
         self.route = route
         self._obstacle_groups = sensors.obstacle_groups
         self._thresholds = thresholds(self._obstacle_groups, params)
+        self._threshold_list: list[float] = self._thresholds.tolist()
         # Threshold of every row of the table: eq. (7) for obstacle sensors; for surface
         # sensors phi_max fore and aft (the climb) and eq. (7)'s side value left and right.
         row_threshold = np.full(len(sensors), params.phi_max_rad)
@@ -409,7 +410,7 @@ class Planner:
             phi_d = desired_pitch_xyz(
                 *self._shaped_aim(x_z, state), *self._xd_prev_xyz, params.phi_max_rad
             )
-        decision = decide(phi_star, self._thresholds)
+        decision = decide_rows(phi_star.tolist(), self._threshold_list)
         self._carve(state, rot, ranges, valid)
         if len(steep_xyz):
             self._memory.add(steep_xyz, self._cycle, steep_inflation, steep_slope)
@@ -430,10 +431,10 @@ class Planner:
             decision = Decision.BLOCKED
 
         # Reference speed and eq. (5); the stop allows for the vehicle ahead of X_d.
-        self._ahead_m = self._vehicle_ahead_m(state.position_enu)
+        heading = self._path_heading()
+        self._ahead_m = self._vehicle_ahead_m(state.position_enu, heading)
         self._update_layout_limit(dt_s, events)
         v_target = self._speed_target()
-        heading = self._path_heading()
         yaw_error = wrap_pi(heading - self._yaw)
         if abs(yaw_error) > _YAW_ALIGNED_RAD and self._v <= speed.STOPPED_MPS:
             v_target = 0.0  # turn on the spot before leaving a stop in a new direction
@@ -631,7 +632,7 @@ class Planner:
         chord_obs = [phi_row[r] for r in obs]
         star = phi_star.tolist()
         # Both are 0 where nothing was detected (`steepness`, and phi_row's zeros).
-        raised = [max(a, b) for a, b in zip(star, chord_obs, strict=True)]
+        raised = list(map(max, star, chord_obs))
         for r, phi in zip(obs, raised, strict=True):
             phi_row[r] = phi
         threshold = self._row_threshold_list
@@ -1144,12 +1145,11 @@ class Planner:
                 _CARVE_SUPPORT_M,
             )
 
-    def _vehicle_ahead_m(self, position_enu: FloatArray) -> float:
-        """How far the vehicle is ahead of last cycle's X_d along the path's heading there,
-        metres (0 when behind or level); horizontal."""
+    def _vehicle_ahead_m(self, position_enu: FloatArray, heading: float) -> float:
+        """How far the vehicle is ahead of last cycle's X_d along the path's heading there
+        (heading, radians: `_path_heading`), metres (0 when behind or level); horizontal."""
         x, y = position_enu[:2].tolist()  # plain floats: the same numbers, fewer calls
         xd, yd, _ = self._xd_prev_xyz
-        heading = self._path_heading()
         ahead = (x - xd) * math.cos(heading) + (y - yd) * math.sin(heading)
         return ahead if math.isfinite(ahead) and ahead > 0.0 else 0.0
 
