@@ -273,7 +273,6 @@ class Planner:
         self._s = 0.0
         self._z = float(start[2])
         self._xd_prev = np.array([*route.base_points[0], start[2]])
-        self._xd_prev_xyz: tuple[float, float, float] = tuple(self._xd_prev.tolist())
         self._v = 0.0
         self._yaw = route.start_heading_rad
         self._h_d = params.h_d_m
@@ -320,6 +319,18 @@ class Planner:
         for name, value in self.__dict__.items():
             setattr(twin, name, None if name == "_search" else copy.deepcopy(value, memo))
         return twin
+
+    @property
+    def _xd_prev(self) -> FloatArray:
+        """X_d of the last cycle, (3,) metres world ENU; also kept as plain floats
+        (`_xd_prev_xyz`) for the per-cycle scalar paths, set together by the setter."""
+        return self._xd_prev_enu
+
+    @_xd_prev.setter
+    def _xd_prev(self, value: FloatArray) -> None:
+        self._xd_prev_enu = value
+        x, y, z = value.tolist()
+        self._xd_prev_xyz = (x, y, z)
 
     # --- public controls -------------------------------------------------------------------
     @property
@@ -470,7 +481,6 @@ class Planner:
         )
         self._record_track(x, y)
         self._xd_prev = x_d
-        self._xd_prev_xyz = (x, y, self._z)
 
         if self._mode is not PathMode.ROUTE and self._s >= self._detour_end_s:
             if self._after_retreat is not None:
