@@ -88,3 +88,37 @@ def test_chord_steepness_ignores_short_chords() -> None:
     pts = np.array([[0.0, 0.0, 0.0], [0.2, 0.0, 1.0]])
     phi, partner = chord_steepness(pts, min_separation_m=0.5)
     assert phi.tolist() == [0.0, 0.0] and partner.tolist() == [-1, -1]
+
+
+def test_chord_steepness_on_float_rows_equals_the_array_form() -> None:
+    """The planner's plain-float entry (`chord_steepness_rows`) gives chord_steepness's
+    numbers bit for bit, on both sides of the small-cloud switch and for 0 or 1 point."""
+    from companion.planner.decision import chord_steepness_rows
+
+    rng = np.random.default_rng(11)
+    partners_found = 0
+    for trial in range(600):
+        n = trial % 15
+        points = rng.normal(size=(n, 3)) * float(rng.choice([0.5, 5.0]))
+        if trial % 4 == 0:
+            points = np.round(points, 1)  # equal heights and equal chords
+        phi, partner = chord_steepness(points, 0.5)
+        phi_rows, partner_rows = chord_steepness_rows(points.tolist(), 0.5)
+        assert np.array(phi_rows, dtype=np.float64).tobytes() == phi.tobytes()
+        assert partner_rows == partner.tolist()
+        partners_found += sum(p >= 0 for p in partner_rows)
+    assert partners_found > 1000
+
+
+def test_decide_on_float_rows_equals_decide() -> None:
+    from companion.planner.decision import decide_rows
+
+    rng = np.random.default_rng(12)
+    seen = set()
+    for _ in range(500):
+        phi = rng.uniform(-1.0, 1.0, 7)
+        thr = rng.uniform(0.3, 1.0, 7)
+        expected = decide(phi, thr)
+        assert decide_rows(phi.tolist(), thr.tolist()) is expected
+        seen.add(expected)
+    assert seen == {Decision.VERTICAL, Decision.HORIZONTAL}

@@ -66,3 +66,25 @@ def test_paper_search_overshoots_by_at_most_one_increment() -> None:
     travelled = float(np.hypot(*(p1 - p0))) / math.cos(0.3)
     assert 0.05 <= travelled <= 0.05 + route.segments[0].speed(t) * delta / math.cos(0.3) + 1e-9
     assert z == pytest.approx(math.tan(0.3) * float(np.hypot(*(p1 - p0))))
+
+
+def test_aim_point_in_floats_is_eq3_with_r_psi() -> None:
+    """`aim_point_xyz` (the planner's per-cycle form) against eq. (3) written with the
+    matrix R_psi; both raise on coincident ground points."""
+    from companion.planner.rotations import r_psi
+    from companion.planner.terrain import aim_point_xyz, desired_pitch_xyz
+
+    rng = np.random.default_rng(3)
+    for _ in range(200):
+        h1, h2 = rng.normal(size=3) * 5.0, rng.normal(size=3) * 5.0
+        yaw = float(rng.uniform(-math.pi, math.pi))
+        g = (h1 - h2) / np.linalg.norm(h1 - h2)
+        up = r_psi(yaw) @ g
+        expected = h1 + 2.0 * up / np.linalg.norm(up)
+        got = aim_point_xyz(*h1.tolist(), *h2.tolist(), yaw, 2.0)
+        np.testing.assert_allclose(got, expected, atol=1e-9)
+        assert aim_point(h1, h2, yaw, 2.0).tolist() == list(got)
+        x_d = rng.normal(size=3)
+        assert desired_pitch(np.array(got), x_d, 0.6) == desired_pitch_xyz(*got, *x_d.tolist(), 0.6)
+    with pytest.raises(ValueError, match="coincide"):
+        aim_point_xyz(1.0, 2.0, 3.0, 1.0, 2.0, 3.0, 0.0, 2.0)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 
 import numpy as np
 
@@ -43,6 +44,14 @@ def decide(phi_star: FloatArray, threshold: FloatArray) -> Decision:
     return Decision.HORIZONTAL if (phi_star > threshold).any() else Decision.VERTICAL
 
 
+def decide_rows(phi_star: Sequence[float], threshold: Sequence[float]) -> Decision:
+    """`decide` on plain floats (the planner's per-cycle path): the same comparisons."""
+    for p, t in zip(phi_star, threshold, strict=True):
+        if p > t:
+            return Decision.HORIZONTAL
+    return Decision.VERTICAL
+
+
 def chord_steepness(points: FloatArray, min_separation_m: float) -> tuple[FloatArray, IntArray]:
     """The steepest chord from each point down to another, and which one: the project's
     complement to eq. (6).
@@ -81,13 +90,41 @@ def chord_steepness(points: FloatArray, min_separation_m: float) -> tuple[FloatA
     return np.where(found, best, 0.0), np.where(found, partner, -1)
 
 
+def chord_steepness_rows(
+    points: list[list[float]], min_separation_m: float
+) -> tuple[list[float], list[int]]:
+    """`chord_steepness` of points given as plain-float rows [x, y, z] (world ENU), its
+    results as lists: the same numbers (the planner's per-cycle path, which holds its points
+    as floats already)."""
+    n = len(points)
+    if n < 2:
+        return [0.0] * n, [-1] * n
+    if n <= _SMALL_CLOUD:
+        rises, runs, partners = _chords_small(points, min_separation_m)
+        angles: list[float] = np.arctan2(rises, runs).tolist()
+        return angles, partners
+    phi, partner = chord_steepness(np.array(points, dtype=np.float64), min_separation_m)
+    return phi.tolist(), partner.tolist()
+
+
 def _chord_steepness_small(
     points: FloatArray, min_separation_m: float
 ) -> tuple[FloatArray, IntArray]:
     """`chord_steepness` in plain floats, for a few points: the same operations (sqrt,
     division; no hypot) in the same order and the first of equal chords, so the same
     numbers; the angles from one numpy arctan2, as the array form takes them."""
-    pts = points.tolist()
+    rises, runs, partners = _chords_small(points.tolist(), min_separation_m)
+    # arctan2(0, 0) = 0 where there is no chord, as in the array form.
+    angles: FloatArray = np.arctan2(rises, runs)
+    return angles, np.array(partners, dtype=np.intp)
+
+
+def _chords_small(
+    pts: list[list[float]], min_separation_m: float
+) -> tuple[list[float], list[float], list[int]]:
+    """The steepest chord down from each point as (rise, run, partner) lists; (0, 0, -1)
+    where there is none."""
+    sqrt = math.sqrt
     rises: list[float] = []
     runs: list[float] = []
     partners: list[int] = []
@@ -97,12 +134,12 @@ def _chord_steepness_small(
             dz = zi - zk
             if dz > 0.0:
                 dx, dy = xi - xk, yi - yk
-                h = math.sqrt(dx * dx + dy * dy)
-                if h >= min_separation_m and dz / h > best:
-                    best, k_best, rise, run = dz / h, k, dz, h
+                h = sqrt(dx * dx + dy * dy)
+                if h >= min_separation_m:
+                    q = dz / h
+                    if q > best:
+                        best, k_best, rise, run = q, k, dz, h
         rises.append(rise)
         runs.append(run)
         partners.append(k_best)
-    # arctan2(0, 0) = 0 where there is no chord, as in the array form.
-    angles: FloatArray = np.arctan2(rises, runs)
-    return angles, np.array(partners, dtype=np.intp)
+    return rises, runs, partners

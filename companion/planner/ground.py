@@ -24,10 +24,16 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from companion.planner.types import FloatArray
+
+# `np.linalg.solve`'s own kernel for one right-hand side (numpy 1.26 to 2.x), if present.
+_SOLVE1 = getattr(getattr(np.linalg, "_umath_linalg", None), "solve1", None)
+
 # Ridge weights per coefficient (c0..c5) relative to the number of points: slopes are
 # barely held, curvatures somewhat more, the cross term most (the sensors' cross of points
 # fixes it poorly).
 _RIDGE = np.array([0.0, 1e-3, 1e-3, 0.1, 0.5, 0.1])
+_RIDGE_DIAG = np.diag(_RIDGE)
 _MIN_POINTS = 8
 # The local origin of the stored rows moves when a fit is asked for farther than this, metres.
 _REBASE_M = 8.0
@@ -133,10 +139,21 @@ class GroundPoints:
         if n < _MIN_POINTS:
             return None
         lhs = a.T @ a
-        lhs.flat[::7] += _RIDGE * n
-        coef = np.linalg.solve(lhs, a.T @ self._xyz[:n_all, 2][near])
+        lhs += _RIDGE_DIAG * n  # (+ 0.0 off the diagonal: the same numbers)
+        coef = _solve6(lhs, a.T @ self._xyz[:n_all, 2][near])
         c0, c1, c2, c3, c4, c5 = coef.tolist()
         return GroundFit(self._ox, self._oy, (c0, c1, c2, c3, c4, c5), n)
+
+
+def _solve6(lhs: FloatArray, rhs: FloatArray) -> FloatArray:
+    """lhs^-1 rhs for the fit's 6 x 6 normal equations: the LAPACK solve `np.linalg.solve`
+    makes (the same numbers), without its checks, which cost several times the solve on a
+    matrix this small. lhs is positive definite (the ridge, and n >= _MIN_POINTS rows of
+    ones in c0), never singular."""
+    if _SOLVE1 is None:  # (a numpy without the gufunc: the public, slower call)
+        return np.asarray(np.linalg.solve(lhs, rhs), dtype=np.float64)
+    solved: FloatArray = _SOLVE1(lhs, rhs, signature="dd->d")
+    return solved
 
 
 def offsets_from_fit(

@@ -42,7 +42,7 @@ from companion.planner.avoidance import (
     min_distance_within,
     passed_beside,
 )
-from companion.planner.decision import chord_steepness, decide, steepness, thresholds
+from companion.planner.decision import chord_steepness_rows, decide_rows, steepness, thresholds
 from companion.planner.frames import wrap_pi
 from companion.planner.gridpath import GridPlan, grid_search
 from companion.planner.ground import GroundPoints, offsets_from_fit
@@ -60,7 +60,12 @@ from companion.planner.sensors import (
     sector_fan_flu,
 )
 from companion.planner.sight import layout_speed_limit_mps, wall_flag_distance_m
-from companion.planner.terrain import advance_exact, advance_paper, aim_point, desired_pitch
+from companion.planner.terrain import (
+    advance_exact,
+    advance_paper,
+    aim_point_xyz,
+    desired_pitch_xyz,
+)
 from companion.planner.types import (
     BoolArray,
     Decision,
@@ -231,6 +236,7 @@ class Planner:
         self.route = route
         self._obstacle_groups = sensors.obstacle_groups
         self._thresholds = thresholds(self._obstacle_groups, params)
+        self._threshold_list: list[float] = self._thresholds.tolist()
         # Threshold of every row of the table: eq. (7) for obstacle sensors; for surface
         # sensors phi_max fore and aft (the climb) and eq. (7)'s side value left and right.
         row_threshold = np.full(len(sensors), params.phi_max_rad)
@@ -239,6 +245,8 @@ class Planner:
             if group in sensors.surface_index:
                 row_threshold[sensors.surface_index[group]] = params.side_threshold_rad
         self._row_threshold = row_threshold
+        self._row_threshold_list: list[float] = row_threshold.tolist()
+        self._obstacle_rows: list[int] = sensors.obstacle_index.tolist()
         self._surface_items = tuple(sensors.surface_index.items())
         # Row of the sensor table -> its position among the obstacle sensors.
         self._obstacle_position = {int(r): k for k, r in enumerate(sensors.obstacle_index)}
@@ -278,7 +286,7 @@ class Planner:
         self._stops: list[float] = []
         self._track: deque[tuple[float, float]] = deque(maxlen=_TRACK_MAX_POINTS)
         self._track.append((float(start[0]), float(start[1])))
-        self._last_ground: dict[Group, FloatArray] = {}
+        self._last_ground: dict[Group, list[float]] = {}  # [x, y, z] world ENU, metres
         self._ground_store = GroundPoints()
         self._sight_key: tuple[float, float] | None = None
         self._failed_attempt: tuple[int, int, int, bool] | None = None
@@ -311,6 +319,18 @@ class Planner:
         for name, value in self.__dict__.items():
             setattr(twin, name, None if name == "_search" else copy.deepcopy(value, memo))
         return twin
+
+    @property
+    def _xd_prev(self) -> FloatArray:
+        """X_d of the last cycle, (3,) metres world ENU; also kept as plain floats
+        (`_xd_prev_xyz`) for the per-cycle scalar paths, set together by the setter."""
+        return self._xd_prev_enu
+
+    @_xd_prev.setter
+    def _xd_prev(self, value: FloatArray) -> None:
+        self._xd_prev_enu = value
+        x, y, z = value.tolist()
+        self._xd_prev_xyz = (x, y, z)
 
     # --- public controls -------------------------------------------------------------------
     @property
@@ -365,16 +385,18 @@ class Planner:
         valid = self.sensors.valid(ranges)
         valid_list: list[bool] = valid.tolist()
         points = range_points_world(state.position_enu, rot, self.sensors.boresights_flu, ranges)
+        pts: list[list[float]] = points.tolist()
         surface = {g: i for g, i in self._surface_items if valid_list[i]}
 
         # Eqs (3)-(4): desired pitch from the fore and aft ground points.
-        x_h1 = self._ground_point(Group.SURFACE_FORWARD, points, surface, state)
-        x_h2 = self._ground_point(Group.SURFACE_BACK, points, surface, state)
+        x_h1 = self._ground_point(Group.SURFACE_FORWARD, pts, surface, state)
+        x_h2 = self._ground_point(Group.SURFACE_BACK, pts, surface, state)
         surface_valid = x_h1 is not None and x_h2 is not None
-        x_z: FloatArray | None = None
+        x_z: tuple[float, float, float] | None = None
         if x_h1 is not None and x_h2 is not None:
             try:
-                x_z = aim_point(x_h1, x_h2, state.yaw_rad, self._h_d)
+                (x1, y1, z1), (x2, y2, z2) = x_h1, x_h2
+                x_z = aim_point_xyz(x1, y1, z1, x2, y2, z2, state.yaw_rad, self._h_d)
             except ValueError:
                 surface_valid = False
 
@@ -386,7 +408,7 @@ class Planner:
         ground = self._ground_points(points, surface, state)
         phi_star = steepness(points[obs], ground, detected)
         steep_xyz, steep_inflation, steep_slope = self._steep_points(
-            points, valid, valid_list, detected, ground, phi_star
+            points, pts, valid, valid_list, detected, ground, phi_star
         )
         if self._sector_rows.size and len(steep_xyz):
             steep_xyz, steep_inflation, steep_slope = self._sector_arcs(
@@ -395,16 +417,18 @@ class Planner:
         phi_d = 0.0  # no ground in view: hold the height
         if x_z is not None:
             if params.shape_terrain:
-                self._remember_ground(points, surface, len(steep_xyz) > 0)
-            phi_d = desired_pitch(self._shaped_aim(x_z, state), self._xd_prev, params.phi_max_rad)
-        decision = decide(phi_star, self._thresholds)
+                self._remember_ground(pts, surface, len(steep_xyz) > 0)
+            phi_d = desired_pitch_xyz(
+                *self._shaped_aim(x_z, state), *self._xd_prev_xyz, params.phi_max_rad
+            )
+        decision = decide_rows(phi_star.tolist(), self._threshold_list)
         self._carve(state, rot, ranges, valid)
         if len(steep_xyz):
             self._memory.add(steep_xyz, self._cycle, steep_inflation, steep_slope)
         self._memory.forget_far(state.position_enu[:2])
+        ranges_list: list[float] = ranges.tolist()
         nearest = min(
-            [r for r, ok in zip(ranges[obs].tolist(), detected.tolist(), strict=True) if ok],
-            default=math.inf,
+            [ranges_list[r] for r in self._obstacle_rows if valid_list[r]], default=math.inf
         )
         min_range = nearest if nearest < math.inf else 0.0
 
@@ -418,10 +442,10 @@ class Planner:
             decision = Decision.BLOCKED
 
         # Reference speed and eq. (5); the stop allows for the vehicle ahead of X_d.
-        self._ahead_m = self._vehicle_ahead_m(state.position_enu)
+        heading = self._path_heading()
+        self._ahead_m = self._vehicle_ahead_m(state.position_enu, heading)
         self._update_layout_limit(dt_s, events)
         v_target = self._speed_target()
-        heading = self._path_heading()
         yaw_error = wrap_pi(heading - self._yaw)
         if abs(yaw_error) > _YAW_ALIGNED_RAD and self._v <= speed.STOPPED_MPS:
             v_target = 0.0  # turn on the spot before leaving a stop in a new direction
@@ -497,51 +521,59 @@ class Planner:
 
     # --- helpers ----------------------------------------------------------------------------
     def _ground_point(
-        self, group: Group, points: FloatArray, surface: dict[Group, int], state: VehicleState
-    ) -> FloatArray | None:
+        self, group: Group, pts: list[list[float]], surface: dict[Group, int], state: VehicleState
+    ) -> list[float] | None:
         """X_h of a surface sensor this cycle, or the last one it measured while that is
         still on its side of the vehicle (ahead for h1, behind for h2) and within
         _GROUND_HOLD_RANGE H_d: ground does not move, and a tilted vehicle looks past it
-        for a while (a nose-down pitch lifts the backward sensor above its range)."""
+        for a while (a nose-down pitch lifts the backward sensor above its range).
+        [x, y, z], world ENU metres (pts: this cycle's range points as plain floats)."""
         idx = surface.get(group)
         if idx is not None:
-            point: FloatArray = points[idx].copy()
+            point = pts[idx]
             self._last_ground[group] = point
             return point
         held = self._last_ground.get(group)
         if held is None:
             return None
-        rel = held[:2] - state.position_enu[:2]
-        along = rel[0] * math.cos(state.yaw_rad) + rel[1] * math.sin(state.yaw_rad)
+        x, y = state.position_enu[:2].tolist()
+        rel_x, rel_y = held[0] - x, held[1] - y
+        along = rel_x * math.cos(state.yaw_rad) + rel_y * math.sin(state.yaw_rad)
         ahead = group is Group.SURFACE_FORWARD
-        if (along > 0.0) == ahead and math.hypot(*rel) <= _GROUND_HOLD_RANGE * self._h_d:
+        if (along > 0.0) == ahead and math.hypot(rel_x, rel_y) <= _GROUND_HOLD_RANGE * self._h_d:
             return held
         return None
 
-    def _remember_ground(self, points: FloatArray, surface: dict[Group, int], steep: bool) -> None:
+    def _remember_ground(
+        self, pts: list[list[float]], surface: dict[Group, int], steep: bool
+    ) -> None:
         """This cycle's surface hits that are not too steep to climb into the ground store."""
         skip = set(self._steep_rows.tolist()) if steep else set()
         for i in surface.values():
             if i not in skip:
-                x, y, z = points[i].tolist()
+                x, y, z = pts[i]
                 self._ground_store.add(i, x, y, z)
 
-    def _shaped_aim(self, x_z: FloatArray, state: VehicleState) -> FloatArray:
+    def _shaped_aim(
+        self, x_z: tuple[float, float, float], state: VehicleState
+    ) -> tuple[float, float, float]:
         """Eq. (3)'s aim point raised for the slope across the heading and for the lag over
-        curved relief (`ground.offsets_from_fit`), when the ground store fits a surface."""
+        curved relief (`ground.offsets_from_fit`), when the ground store fits a surface.
+        (x, y, z) world ENU, metres."""
         if not self.params.shape_terrain:
             return x_z  # (and the ground store stays empty: `step` fills it only for this)
-        zx, zy, zz = x_z.tolist()
+        zx, zy, zz = x_z
+        xd, yd, _ = self._xd_prev_xyz
         # About the middle of the stretch eq. (4) steers over: X_d (k-1) to the aim.
-        cx = 0.5 * (zx + float(self._xd_prev[0]))
-        cy = 0.5 * (zy + float(self._xd_prev[1]))
+        cx = 0.5 * (zx + xd)
+        cy = 0.5 * (zy + yd)
         fit = self._ground_store.fit(cx, cy, _GROUND_FIT_RADIUS_M)
         if fit is None:
             return x_z
-        lead = math.hypot(zx - float(self._xd_prev[0]), zy - float(self._xd_prev[1]))
+        lead = math.hypot(zx - xd, zy - yd)
         side, bend = offsets_from_fit(fit, zx, zy, state.yaw_rad, self._h_d, lead)
         lift = min(max(side + bend, -_GROUND_LIFT_MAX_M), _GROUND_LIFT_MAX_M)
-        return np.array([zx, zy, zz + lift])
+        return zx, zy, zz + lift
 
     def _ground_points(
         self, points: FloatArray, surface: dict[Group, int], state: VehicleState
@@ -565,6 +597,7 @@ class Planner:
     def _steep_points(
         self,
         points: FloatArray,
+        pts: list[list[float]],
         valid: BoolArray,
         valid_list: list[bool],
         detected: BoolArray,
@@ -594,38 +627,36 @@ class Planner:
         """
         params = self.params
         sensors = self.sensors
-        rows = np.flatnonzero(valid)
-        held = [
-            p
-            for g, p in self._last_ground.items()
-            if (i := sensors.surface_index.get(g)) is None or not valid_list[i]
-        ]
-        cloud = points[rows] if not held else np.vstack([points[rows], *held])
-        phi_pair, partner = chord_steepness(cloud, _MIN_CHORD_M)
-        n = len(sensors)
-        n_rows = len(rows)
-        phi_row = np.zeros(n)
-        phi_row[rows] = phi_pair[:n_rows]
-        obs = sensors.obstacle_index
-        chord_obs = phi_row[obs]
+        # Plain floats up to the steep test (the usual cycle has nothing steep): the same
+        # numbers as the array form (max of two floats, the same comparisons).
+        rows = [r for r, ok in enumerate(valid_list) if ok]
+        cloud_points = [pts[r] for r in rows]
+        for g, p in self._last_ground.items():
+            if (i := sensors.surface_index.get(g)) is None or not valid_list[i]:
+                cloud_points.append(p)
+        phi_pair, partners = chord_steepness_rows(cloud_points, _MIN_CHORD_M)
+        phi_row = [0.0] * len(sensors)
+        for r, phi in zip(rows, phi_pair, strict=False):
+            phi_row[r] = phi
+        obs = self._obstacle_rows
+        chord_obs = [phi_row[r] for r in obs]
+        star = phi_star.tolist()
         # Both are 0 where nothing was detected (`steepness`, and phi_row's zeros).
-        raised = np.maximum(phi_star, chord_obs)
-        phi_row[obs] = raised
-        steep = valid & (phi_row > self._row_threshold)
-        if not steep.any():  # the usual cycle: nothing to remember
-            phi_star[:] = raised
+        raised = list(map(max, star, chord_obs))
+        for r, phi in zip(obs, raised, strict=True):
+            phi_row[r] = phi
+        threshold = self._row_threshold_list
+        steep_rows = [r for r in rows if phi_row[r] > threshold[r]]
+        phi_star[:] = raised
+        if not steep_rows:  # the usual cycle: nothing to remember
             return _NO_POINTS, _NO_INFLATION, _NO_INFLATION
         # Where eq. (6)'s own chord is the steeper one, its other end is the ground point.
-        eq6 = (detected & (phi_star >= chord_obs)).tolist()
-        phi_star[:] = raised
+        eq6 = [ok and a >= b for ok, a, b in zip(detected.tolist(), star, chord_obs, strict=True)]
         # The rest per steep row in plain Python (there are a few): the chord's other end
         # and the group's ground height (inf for a surface row), then the inflation.
-        cloud_rows = {r: j for j, r in enumerate(rows.tolist())}
-        partners = partner.tolist()
-        cloud_points = cloud.tolist()
+        cloud_rows = {r: j for j, r in enumerate(rows)}
         ground_points = ground.tolist()
-        steep_rows = np.flatnonzero(steep).tolist()
-        xyz = points[steep]
+        xyz = points[steep_rows]
         lows: list[list[float]] = []
         for r in steep_rows:
             k = self._obstacle_position.get(r)
@@ -634,7 +665,7 @@ class Planner:
             else:
                 j = partners[cloud_rows[r]]
                 lows.append(cloud_points[j] if j >= 0 else [math.nan] * 3)
-        steep_points = xyz.tolist()
+        steep_points = [pts[r] for r in steep_rows]
         # np.hypot, not math.hypot: the two can differ in the last bit.
         chords: list[float] = np.hypot(
             [p[0] - q[0] for p, q in zip(steep_points, lows, strict=True)],
@@ -644,7 +675,7 @@ class Planner:
         slope: list[float] = []
         for r, p, q, h in zip(steep_rows, steep_points, lows, chords, strict=True):
             if h <= _LOCAL_CHORD_M:  # (False for a chord without another end: NaN)
-                theta = float(phi_row[r])
+                theta = phi_row[r]
                 k = self._obstacle_position.get(r)
                 z_g = q[2] if k is None else min(q[2], ground_points[k][2])
                 rise = max(p[2] - z_g - self._h_d, 0.0)
@@ -1130,12 +1161,11 @@ class Planner:
                 _CARVE_SUPPORT_M,
             )
 
-    def _vehicle_ahead_m(self, position_enu: FloatArray) -> float:
-        """How far the vehicle is ahead of last cycle's X_d along the path's heading there,
-        metres (0 when behind or level); horizontal."""
+    def _vehicle_ahead_m(self, position_enu: FloatArray, heading: float) -> float:
+        """How far the vehicle is ahead of last cycle's X_d along the path's heading there
+        (heading, radians: `_path_heading`), metres (0 when behind or level); horizontal."""
         x, y = position_enu[:2].tolist()  # plain floats: the same numbers, fewer calls
-        xd, yd = self._xd_prev[:2].tolist()
-        heading = self._path_heading()
+        xd, yd, _ = self._xd_prev_xyz
         ahead = (x - xd) * math.cos(heading) + (y - yd) * math.sin(heading)
         return ahead if math.isfinite(ahead) and ahead > 0.0 else 0.0
 

@@ -20,10 +20,19 @@ def aim_point(x_h1: FloatArray, x_h2: FloatArray, yaw_rad: float, h_d_m: float) 
     X_h1/X_h2: ground points of the forward and backward surface sensors. R_psi turns the
     fore-aft ground direction up by pi/2; the result is normalised after rotating because
     roll or side-slip take (X_h1 - X_h2) out of the heading's vertical plane (docs/paper.md).
-    Scalar arithmetic (a per-cycle path): R_psi is `rotations.r_psi` written out.
     """
     x1, y1, z1 = np.asarray(x_h1, dtype=np.float64).tolist()
     x2, y2, z2 = np.asarray(x_h2, dtype=np.float64).tolist()
+    return np.array(aim_point_xyz(x1, y1, z1, x2, y2, z2, yaw_rad, h_d_m))
+
+
+def aim_point_xyz(
+    x1: float, y1: float, z1: float, x2: float, y2: float, z2: float, yaw_rad: float, h_d_m: float
+) -> tuple[float, float, float]:
+    """`aim_point` in plain floats (the per-cycle path): X_h1 = (x1, y1, z1), X_h2 = (x2,
+    y2, z2) in, X_z out, world ENU metres. R_psi is `rotations.r_psi` written out. Raises
+    ValueError when the two points coincide or their direction is perpendicular to the
+    heading."""
     gx, gy, gz = x1 - x2, y1 - y2, z1 - z2
     g_norm = math.sqrt(gx * gx + gy * gy + gz * gz)
     if g_norm < 1e-9:
@@ -36,9 +45,7 @@ def aim_point(x_h1: FloatArray, x_h2: FloatArray, yaw_rad: float, h_d_m: float) 
     up_norm = math.sqrt(ux * ux + uy * uy + uz * uz)
     if up_norm < 1e-9:
         raise ValueError("ground direction is perpendicular to the heading")
-    return np.array(
-        [x1 + h_d_m * ux / up_norm, y1 + h_d_m * uy / up_norm, z1 + h_d_m * uz / up_norm]
-    )
+    return x1 + h_d_m * ux / up_norm, y1 + h_d_m * uy / up_norm, z1 + h_d_m * uz / up_norm
 
 
 def desired_pitch(x_z: FloatArray, x_d_prev: FloatArray, phi_max_rad: float) -> float:
@@ -46,6 +53,14 @@ def desired_pitch(x_z: FloatArray, x_d_prev: FloatArray, phi_max_rad: float) -> 
     clamped to [-phi_max, +phi_max] (requirement 5). Radians."""
     xz, yz, zz = np.asarray(x_z, dtype=np.float64).tolist()
     xd, yd, zd = np.asarray(x_d_prev, dtype=np.float64).tolist()
+    return desired_pitch_xyz(xz, yz, zz, xd, yd, zd, phi_max_rad)
+
+
+def desired_pitch_xyz(
+    xz: float, yz: float, zz: float, xd: float, yd: float, zd: float, phi_max_rad: float
+) -> float:
+    """`desired_pitch` in plain floats (the per-cycle path): X_z = (xz, yz, zz), X_d(k-1) =
+    (xd, yd, zd), world ENU metres. Radians."""
     dz = zz - zd
     dh = math.hypot(xz - xd, yz - yd)
     phi = math.atan2(dz, dh)
