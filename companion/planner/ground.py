@@ -26,9 +26,6 @@ import numpy as np
 
 from companion.planner.types import FloatArray
 
-# `np.linalg.solve`'s own kernel for one right-hand side (numpy 1.26 to 2.x), if present.
-_SOLVE1 = getattr(getattr(np.linalg, "_umath_linalg", None), "solve1", None)
-
 # Ridge weights per coefficient (c0..c5) relative to the number of points: slopes are
 # barely held, curvatures somewhat more, the cross term most (the sensors' cross of points
 # fixes it poorly).
@@ -146,14 +143,11 @@ class GroundPoints:
 
 
 def _solve6(lhs: FloatArray, rhs: FloatArray) -> FloatArray:
-    """lhs^-1 rhs for the fit's 6 x 6 normal equations: the LAPACK solve `np.linalg.solve`
-    makes (the same numbers), without its checks, which cost several times the solve on a
-    matrix this small. lhs is positive definite (the ridge, and n >= _MIN_POINTS rows of
-    ones in c0), never singular."""
-    if _SOLVE1 is None:  # (a numpy without the gufunc: the public, slower call)
-        return np.asarray(np.linalg.solve(lhs, rhs), dtype=np.float64)
-    solved: FloatArray = _SOLVE1(lhs, rhs, signature="dd->d")
-    return solved
+    """lhs^-1 rhs for the fit's 6 x 6 normal equations. lhs is positive definite (the ridge,
+    and n >= _MIN_POINTS rows of ones in c0), never singular. (numpy's private gufunc behind
+    `np.linalg.solve` skips its checks and is faster, but a private API may change under a
+    planner in flight.)"""
+    return np.asarray(np.linalg.solve(lhs, rhs), dtype=np.float64)
 
 
 def offsets_from_fit(
