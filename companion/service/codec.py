@@ -26,6 +26,7 @@ from __future__ import annotations
 import hashlib
 import hmac
 import logging
+import operator
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 from typing import Any
@@ -299,15 +300,16 @@ def _one_v2_frame(data: bytes) -> bool:
 @dataclass(frozen=True, slots=True)
 class _Plan:
     """How pymavlink's `MAVLink.decode` turns one message type's payload into its fields,
-    worked out once: the unpacked values to take, in field order, as (index, length; a
-    length of 0 takes the value itself, else a list of that many), and which fields are
-    text (trailing NULs stripped)."""
+    worked out once: `pick` takes each field's first unpacked value, in field order; the
+    array fields are then (field index, unpacked index, length), a list of that many
+    values; the text fields have their trailing NULs stripped."""
 
     msgtype: Any
     crc_extra: bytes
     size: int
     unpack: Callable[[bytes], tuple[Any, ...]]
-    picks: tuple[tuple[int, int], ...]
+    pick: Callable[[tuple[Any, ...]], Any]
+    arrays: tuple[tuple[int, int, int], ...]
     texts: tuple[int, ...]
 
 
@@ -325,9 +327,21 @@ def _plan(msg_id: int) -> _Plan | None:
         for order in orders:
             n, tip = lengths[order], sum(lengths[:order])
             picks.append((tip, 0 if n == 1 or isinstance(probe[tip], bytes) else n))
-    texts = tuple(i for i, (tip, n) in enumerate(picks) if n == 0 and isinstance(probe[tip], bytes))
+    tips = [tip for tip, _ in picks]
+    # itemgetter of one index gives the value itself: one field is a slice of one
+    pick = (
+        operator.itemgetter(*tips)
+        if len(tips) > 1
+        else operator.itemgetter(slice(tips[0], tips[0] + 1))
+    )
     return _Plan(
-        msgtype, bytes([msgtype.crc_extra]), unpacker.size, unpacker.unpack, tuple(picks), texts
+        msgtype,
+        bytes([msgtype.crc_extra]),
+        unpacker.size,
+        unpacker.unpack,
+        pick,
+        tuple((i, tip, n) for i, (tip, n) in enumerate(picks) if n),
+        tuple(i for i, (tip, n) in enumerate(picks) if n == 0 and isinstance(probe[tip], bytes)),
     )
 
 
@@ -361,7 +375,9 @@ def _decode_unsigned(data: bytes) -> MAVLinkMessage | None:
     elif len(payload) > size:
         payload = payload[:size]
     t = plan.unpack(payload)
-    fields: list[Any] = [t[i] if n == 0 else list(t[i : i + n]) for i, n in plan.picks]
+    fields: list[Any] = list(plan.pick(t))
+    for i, tip, n in plan.arrays:
+        fields[i] = list(t[tip : tip + n])
     for i in plan.texts:
         fields[i] = fields[i].rstrip(b"\x00")
     try:
