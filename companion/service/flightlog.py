@@ -100,9 +100,7 @@ def _record_encoder() -> Callable[[Any], str]:
     make = getattr(json.encoder, "c_make_encoder", None)
     ascii_str = getattr(json.encoder, "c_encode_basestring_ascii", None)
     if make is None or ascii_str is None:
-        return functools.partial(
-            json.dumps, separators=(",", ":"), allow_nan=False, default=_plain
-        )
+        return functools.partial(json.dumps, separators=(",", ":"), allow_nan=False, default=_plain)
     encode = make(None, _plain, ascii_str, None, ":", ",", False, False, False)
 
     def dumps(record: Any) -> str:
