@@ -9,6 +9,7 @@ import math
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import pytest
 
 import companion.service.codec as codec_mod
@@ -66,13 +67,13 @@ def _decode_all(datagrams: list[bytes], short_way: bool, signed: bool) -> tuple[
     codec = MavCodec(1, 191)
     if signed:
         codec.enable_signing(KEY, timestamp=1000)
-    original = codec_mod._one_v2_frame
+    original = codec_mod._frame_end
     if not short_way:
-        codec_mod._one_v2_frame = lambda data: False
+        codec_mod._frame_end = lambda data, start: 0
     try:
         got = [[_whole(m) for m in codec.decode(d)] for d in datagrams]
     finally:
-        codec_mod._one_v2_frame = original
+        codec_mod._frame_end = original
     mav = codec.mav
     totals = (mav.total_packets_received, mav.total_bytes_received, mav.total_receive_errors)
     return got, codec.counters, totals, codec.signing_timestamp if signed else None
@@ -155,13 +156,13 @@ def test_captured_arducopter_traffic_decodes_as_the_parser_does() -> None:
     results = []
     for short_way in (True, False):
         codec = MavCodec(1, 191)
-        original = codec_mod._one_v2_frame
+        original = codec_mod._frame_end
         if not short_way:
-            codec_mod._one_v2_frame = lambda data: False
+            codec_mod._frame_end = lambda data, start: 0
         try:
             msgs = [m for d in datagrams for m in codec.decode(d)]
         finally:
-            codec_mod._one_v2_frame = original
+            codec_mod._frame_end = original
         results.append(([_whole(m) for m in msgs], codec.counters))
     assert results[0] == results[1]
     # the sample is what it says: every datagram one good frame, the autopilot's messages and
@@ -176,3 +177,54 @@ def test_captured_arducopter_traffic_decodes_as_the_parser_does() -> None:
     assert ("DISTANCE_SENSOR", 158) in kinds
     for kind in ("HOME_POSITION", "COMMAND_ACK", "STATUSTEXT", "TIMESYNC", "PARAM_VALUE"):
         assert any(k == kind for k, _ in kinds)
+
+
+def test_several_frames_in_one_datagram_decode_as_the_parser_does() -> None:
+    """A lockstep simulator sends a period's frames in one datagram: each whole frame takes
+    the short way, whatever follows the last whole one the parser's, with the parser's
+    messages, verdicts and counters."""
+    tx = mavlink2.MAVLink(None, srcSystem=1, srcComponent=1)
+    frames = _frames(tx)
+    batch = b"".join(frames)
+    bad = frames[1][:-1] + bytes([frames[1][-1] ^ 0xFF])
+    v1 = mavlink2.MAVLink(None, srcSystem=1, srcComponent=1)
+    v1.WIRE_PROTOCOL_VERSION = "1.0"
+    datagrams = [
+        batch,
+        frames[0] + bad + frames[2],  # a bad checksum between good frames
+        frames[3] + frames[4][:-3],  # the last one cut short
+        batch + b"\x00\x01garbage",  # garbage after them
+        frames[5] + frames[6][:2] + b"\x02" + frames[6][3:] + frames[7],  # an unknown flag
+        frames[2] + frames[2][:7] + b"\xff\xff\xff" + frames[2][10:],  # an unknown id last
+        frames[8] + v1.attitude_encode(5, 0, 0, 0, 0, 0, 0).pack(v1) + frames[9],  # v1 inside
+        _longer(frames[1]) + frames[1],
+    ]
+    short = _decode_all(datagrams, short_way=True, signed=False)
+    parser = _decode_all(datagrams, short_way=False, signed=False)
+    assert short == parser
+    got, counters, _, _ = short
+    assert [m for m in got[0]] == [_whole(m) for m in MavCodec(1, 191).decode(batch)]
+    assert len(got[0]) == len(frames)
+    assert counters.bad_crc and counters.truncated and counters.garbage and counters.bad_frame
+    assert counters.unknown_msgid
+
+
+def test_every_message_type_decodes_as_pymavlink_does() -> None:
+    """The codec's decoder gives pymavlink's message, or leaves the frame to pymavlink, for
+    every message type of the dialect (random payloads)."""
+    rng = np.random.default_rng(7)
+    mav = mavlink2.MAVLink(None)
+    decoded = 0
+    for msg_id, msgtype in mavlink2.mavlink_map.items():
+        payload = rng.integers(0, 256, msgtype.unpacker.size, dtype=np.uint8).tobytes()
+        body = bytes([len(payload), 0, 0, 7, 1, 1]) + msg_id.to_bytes(3, "little") + payload
+        crc = mavlink2.x25crc(body + bytes([msgtype.crc_extra])).crc
+        frame = b"\xfd" + body + bytes([crc & 0xFF, crc >> 8])
+        try:
+            expected = _whole(mav.decode(bytearray(frame)))
+        except mavlink2.MAVError:
+            expected = None
+        got = codec_mod._decode_unsigned(frame)
+        assert (None if got is None else _whole(got)) == expected, msgtype.msgname
+        decoded += got is not None
+    assert decoded == len(mavlink2.mavlink_map)  # every type is the codec's own decoder's

@@ -7,10 +7,12 @@ datagram. For datagram links the parser state is reset after every datagram so a
 frame cannot swallow the next datagram's messages. Any unexpected exception from the parser
 is counted and the parser reset.
 
-A datagram that is exactly one MAVLink 2 frame (nearly all of them) skips the parser: an
-unsigned frame of a known message with a good checksum goes through `_decode_unsigned` (what
-pymavlink's `decode` does, its per-type work done once per type: about half the cost), any
-other straight to pymavlink's `decode`, with the verdicts the parser would give.
+Whole MAVLink 2 frames skip the parser: a datagram that is exactly one (nearly all of them),
+and each whole frame of a datagram that holds several (a lockstep simulator's period) up to
+the first that is not whole. An unsigned frame of a known message with a good checksum goes
+through `_decode_unsigned` (what pymavlink's `decode` does, its per-type work done once per
+type: about half the cost), any other straight to pymavlink's `decode`, with the verdicts
+the parser would give; what follows the last whole frame goes to the parser.
 
 Signing: with a key, outgoing frames are signed and incoming frames must carry a valid
 signature with a timestamp newer than the last one seen on their stream (replays fail).
@@ -24,6 +26,7 @@ from __future__ import annotations
 import hashlib
 import hmac
 import logging
+import operator
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 from typing import Any
@@ -150,25 +153,58 @@ class MavCodec:
 
     def decode(self, data: bytes, datagram: bool = True) -> list[MAVLinkMessage]:
         """Good messages in `data`; everything else is counted in `counters`."""
-        out: list[MAVLinkMessage] = []
         mav = self.mav
+        c = self.counters
+        msgs: list[MAVLinkMessage] = []
+        good = 0
+        """How many of `msgs`, from the start, are good messages of the codec's decoder."""
         try:
-            if _one_v2_frame(data) and mav.buf_len() == 0:
-                # the usual datagram, one whole MAVLink 2 frame: straight to a decoder, as
-                # pymavlink's parser would hand it over
-                if not data[2] and mav.signing.secret_key is None and type(data) is bytes:
+            end = 0
+            rest = True
+            """Bytes are left for the parser."""
+            if mav.buf_index == len(mav.buf):  # the parser holds nothing from before
+                end = _frame_end(data, 0)
+                if (
+                    end == len(data)
+                    and end
+                    and not data[2]
+                    and mav.signing.secret_key is None
+                    and type(data) is bytes
+                ):
+                    # the usual datagram, one whole unsigned MAVLink 2 frame: straight to
+                    # the codec's decoder, as pymavlink's parser would hand it over
                     m = _decode_unsigned(data)
                     if m is not None:  # a good frame of a known message
                         mav.have_prefix_error = False
-                        mav.total_bytes_received += len(data)
+                        mav.total_bytes_received += end
                         mav.total_packets_received += 1
-                        self.counters.frames += 1
+                        c.frames += 1
                         return [m]
-                msgs = [self._decode_frame(data)]
-            else:
+            if end:
+                # whole MAVLink 2 frames, one after the other: each as the parser would hand
+                # it to pymavlink's `decode` (good unsigned ones to the codec's decoder),
+                # whatever follows the last whole one to the parser
+                start, size = 0, len(data)
+                unsigned = mav.signing.secret_key is None and type(data) is bytes
+                while end:
+                    frame = data if end - start == size else data[start:end]
+                    m = _decode_unsigned(frame) if unsigned and not frame[2] else None
+                    if m is None:
+                        m = self._decode_frame(frame)
+                    else:
+                        mav.have_prefix_error = False
+                        mav.total_bytes_received += end - start
+                        mav.total_packets_received += 1
+                        if good == len(msgs):
+                            good += 1
+                    msgs.append(m)
+                    start = end
+                    end = _frame_end(data, start)
+                rest = start < size
+                data = data[start:]
+            if rest:
                 # `parse_buffer`, without its last call on an empty buffer (which cannot
                 # give a message)
-                msgs = []
                 m = mav.parse_char(data)
                 while m is not None:
                     msgs.append(m)
@@ -177,9 +213,10 @@ class MavCodec:
             self.counters.parser_errors += 1
             log.debug("parser error: %r", exc)
             self._reset()
-            return out
-        c = self.counters
-        for m in msgs:
+            return []
+        out = msgs[:good]
+        c.frames += good
+        for m in msgs[good:] if good else msgs:
             mtype = m.get_type()
             if mtype == "BAD_DATA":
                 reason = str(getattr(m, "reason", ""))
@@ -234,33 +271,45 @@ _V2_FRAME_OVERHEAD: int = mavlink2.HEADER_LEN_V2 + 2
 """Bytes of a MAVLink 2 frame around its payload: header and checksum (no signature)."""
 
 
-def _one_v2_frame(data: bytes) -> bool:
-    """`data` is exactly one MAVLink 2 frame by its header: the start marker, no
-    incompatibility flag other than "signed", and the length its header gives (payload,
-    header, checksum, signature if signed). Its contents are the decoder's to judge."""
-    if len(data) < _V2_FRAME_OVERHEAD or data[0] != mavlink2.PROTOCOL_MARKER_V2:
-        return False
-    flags = data[2]
-    if flags & ~mavlink2.MAVLINK_IFLAG_SIGNED:
-        return False
-    size: int = data[1] + _V2_FRAME_OVERHEAD
+_MARKER_V2: int = mavlink2.PROTOCOL_MARKER_V2
+_NOT_SIGNED: int = ~mavlink2.MAVLINK_IFLAG_SIGNED
+_SIGNATURE_LEN: int = mavlink2.MAVLINK_SIGNATURE_BLOCK_LEN
+
+
+def _frame_end(data: bytes, start: int) -> int:
+    """Where the whole MAVLink 2 frame that starts at `start` of `data` ends, by its header
+    (the start marker, no incompatibility flag other than "signed", and the length its
+    header gives: payload, header, checksum, signature if signed); 0 when there is none.
+    Its contents are the decoder's to judge."""
+    if len(data) - start < _V2_FRAME_OVERHEAD or data[start] != _MARKER_V2:
+        return 0
+    flags = data[start + 2]
+    if flags & _NOT_SIGNED:
+        return 0
+    end: int = start + data[start + 1] + _V2_FRAME_OVERHEAD
     if flags:
-        size += mavlink2.MAVLINK_SIGNATURE_BLOCK_LEN
-    return len(data) == size
+        end += _SIGNATURE_LEN
+    return end if end <= len(data) else 0
+
+
+def _one_v2_frame(data: bytes) -> bool:
+    """`data` is exactly one MAVLink 2 frame by its header (`_frame_end`)."""
+    return bool(data) and _frame_end(data, 0) == len(data)
 
 
 @dataclass(frozen=True, slots=True)
 class _Plan:
     """How pymavlink's `MAVLink.decode` turns one message type's payload into its fields,
-    worked out once: the unpacked values to take, in field order, as (index, length; a
-    length of 0 takes the value itself, else a list of that many), and which fields are
-    text (trailing NULs stripped)."""
+    worked out once: `pick` takes each field's first unpacked value, in field order; the
+    array fields are then (field index, unpacked index, length), a list of that many
+    values; the text fields have their trailing NULs stripped."""
 
     msgtype: Any
     crc_extra: bytes
     size: int
     unpack: Callable[[bytes], tuple[Any, ...]]
-    picks: tuple[tuple[int, int], ...]
+    pick: Callable[[tuple[Any, ...]], Any]
+    arrays: tuple[tuple[int, int, int], ...]
     texts: tuple[int, ...]
 
 
@@ -278,9 +327,21 @@ def _plan(msg_id: int) -> _Plan | None:
         for order in orders:
             n, tip = lengths[order], sum(lengths[:order])
             picks.append((tip, 0 if n == 1 or isinstance(probe[tip], bytes) else n))
-    texts = tuple(i for i, (tip, n) in enumerate(picks) if n == 0 and isinstance(probe[tip], bytes))
+    tips = [tip for tip, _ in picks]
+    # itemgetter of one index gives the value itself: one field is a slice of one
+    pick = (
+        operator.itemgetter(*tips)
+        if len(tips) > 1
+        else operator.itemgetter(slice(tips[0], tips[0] + 1))
+    )
     return _Plan(
-        msgtype, bytes([msgtype.crc_extra]), unpacker.size, unpacker.unpack, tuple(picks), texts
+        msgtype,
+        bytes([msgtype.crc_extra]),
+        unpacker.size,
+        unpacker.unpack,
+        pick,
+        tuple((i, tip, n) for i, (tip, n) in enumerate(picks) if n),
+        tuple(i for i, (tip, n) in enumerate(picks) if n == 0 and isinstance(probe[tip], bytes)),
     )
 
 
@@ -314,7 +375,9 @@ def _decode_unsigned(data: bytes) -> MAVLinkMessage | None:
     elif len(payload) > size:
         payload = payload[:size]
     t = plan.unpack(payload)
-    fields: list[Any] = [t[i] if n == 0 else list(t[i : i + n]) for i, n in plan.picks]
+    fields: list[Any] = list(plan.pick(t))
+    for i, tip, n in plan.arrays:
+        fields[i] = list(t[tip : tip + n])
     for i in plan.texts:
         fields[i] = fields[i].rstrip(b"\x00")
     try:

@@ -118,6 +118,10 @@ class ControlCycle:
         self._text_id = 0
         self._stop_since: float | None = None
         """Service time the current STOP began while commanding (None when not stopped)."""
+        self.min_engage_height_m = cfg.control.min_engage_height_m
+        self._mode_key: tuple[Any, ...] | None = None
+        self._mode: VehicleMode | None = None
+        """The vehicle mode of the last heartbeat seen by `update_ownership`, and its key."""
 
     def say(self, now: float, text: str, severity: Severity = Severity.INFO) -> None:
         self.texts.post(now, text, severity)
@@ -283,13 +287,18 @@ class ControlCycle:
         if hb is None or kind is None or now - hb.t_rx > self.limits.heartbeat_timeout_s:
             return []
         pos = self.tel.position
-        mode = VehicleMode(
-            guided=is_guided(kind, hb.base_mode, hb.custom_mode),
-            armed=is_armed(hb.base_mode),
-            high_enough=pos is not None
-            and pos.relative_alt_m >= self.cfg.control.min_engage_height_m,
-            name=mode_name(kind, self.info.vehicle_type, hb.base_mode, hb.custom_mode),
-        )
+        high_enough = pos is not None and pos.relative_alt_m >= self.min_engage_height_m
+        # the same heartbeat every cycle: its mode is worked out once
+        key = (kind, self.info.vehicle_type, hb.base_mode, hb.custom_mode, high_enough)
+        mode = self._mode if key == self._mode_key else None
+        if mode is None:
+            mode = VehicleMode(
+                guided=is_guided(kind, hb.base_mode, hb.custom_mode),
+                armed=is_armed(hb.base_mode),
+                high_enough=high_enough,
+                name=mode_name(kind, self.info.vehicle_type, hb.base_mode, hb.custom_mode),
+            )
+            self._mode_key, self._mode = key, mode
         before = self.ownership.state
         events = self.ownership.update(mode, allow_engage=allow_engage)
         after = self.ownership.state

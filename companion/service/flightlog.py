@@ -28,11 +28,13 @@ which the service calls about once a second, so a cycle does no file I/O.
 from __future__ import annotations
 
 import contextlib
+import functools
 import json
+import json.encoder
 import logging
 import math
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -91,12 +93,31 @@ def floats(value: Any) -> Any:
     return value
 
 
+def _record_encoder() -> Callable[[Any], str]:
+    """`json.dumps(record, separators=(",", ":"), allow_nan=False, default=_plain)`, with
+    its encoder made once (json makes one per call): the C encoder where json has it.
+    Records are trees (no circular check)."""
+    make = getattr(json.encoder, "c_make_encoder", None)
+    ascii_str = getattr(json.encoder, "c_encode_basestring_ascii", None)
+    if make is None or ascii_str is None:
+        return functools.partial(json.dumps, separators=(",", ":"), allow_nan=False, default=_plain)
+    encode = make(None, _plain, ascii_str, None, ":", ",", False, False, False)
+
+    def dumps(record: Any) -> str:
+        return "".join(encode(record, 0))
+
+    return dumps
+
+
+_dumps_plain = _record_encoder()
+
+
 def dumps_record(record: dict[str, Any]) -> str:
     """One compact JSON line, the same text as `json.dumps(clean(record))`: encoded
     directly when every float is finite and every key a str (the usual record), through
     `clean` otherwise (non-finite floats become null)."""
     try:
-        return json.dumps(record, separators=(",", ":"), allow_nan=False, default=_plain)
+        return _dumps_plain(record)
     except (ValueError, TypeError):
         return json.dumps(clean(record), separators=(",", ":"))
 

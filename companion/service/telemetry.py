@@ -30,6 +30,7 @@ import math
 import operator
 from collections import Counter, deque
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -201,6 +202,10 @@ def _haversine_m(lat1: float, lon1: float, lat2: float, lon2: float) -> float:
     return 2.0 * 6_371_000.0 * math.asin(min(1.0, math.sqrt(a)))
 
 
+_SenderCheck = tuple[int | None, bool | None, str]
+"""A DISTANCE_SENSOR sender's table index, orientation verdict and limits problem."""
+
+
 class Telemetry:
     """Latest validated inputs from one autopilot, with receipt times and counters.
 
@@ -236,13 +241,12 @@ class Telemetry:
         the loop works in has moved, so plans and holds made before it are void."""
         self.counters: Counter[str] = Counter()
         self._expected_boresight = [s.boresight_frd for s in sensors.specs]
-        self._orientation_ok: dict[tuple[int, int], bool | None] = {}
-        """Per (table index, orientation): the orientation checked against the configured
-        one (None: unknown orientation). Per-message work done once per sensor."""
-        self._custom_ok: dict[tuple[int, tuple[float, ...]], bool | None] = {}
-        """The same for MAV_SENSOR_ROTATION_CUSTOM, per (table index, quaternion)."""
+        self._sensor_ok: dict[tuple[Any, ...], _SenderCheck] = {}
+        """Per DISTANCE_SENSOR (id, orientation, min, max): `_sender_check`'s verdict.
+        Per-message work done once per sensor."""
+        self._custom_ok: dict[tuple[Any, ...], _SenderCheck] = {}
+        """The same for MAV_SENSOR_ROTATION_CUSTOM, per (id, min, max, quaternion)."""
         self._order_keys = [f"DISTANCE_SENSOR.{i}" for i in range(len(sensors))]
-        self._limits_seen: dict[tuple[int, int, int], str] = {}
         self._detects: dict[tuple[int, float], bool] = {}
         """The planner's detection rule (`SensorTable.valid`) per (index, reading): readings
         are whole centimetres, so a few hundred values per sensor."""
@@ -567,47 +571,66 @@ class Telemetry:
             return None
         return float(boresight @ self._expected_boresight[index]) >= ORIENTATION_TOLERANCE_COS
 
-    def _distance_sensor(self, msg: MAVLinkMessage, t_rx: float) -> bool:
-        index = self.sensors.index_of_id.get(int(msg.id))
+    def _sender_check(
+        self,
+        checks: dict[tuple[Any, ...], _SenderCheck],
+        key: tuple[Any, ...],
+        sensor_id: int,
+        orientation: int,
+        quaternion: tuple[float, ...],
+        min_cm: int,
+        max_cm: int,
+    ) -> _SenderCheck:
+        """What a DISTANCE_SENSOR's id, orientation (quaternion) and limits say, worked out
+        once per sender's values (they do not change from message to message): the table
+        index (None: unknown id), the orientation against the configured one (`_agrees`)
+        and the limits' problem (`limits_problem`)."""
+        index = self.sensors.index_of_id.get(sensor_id)
         if index is None:
-            return self._reject("sensor_unknown_id", "id %d", int(msg.id))
-        orientation = int(msg.orientation)
+            check: _SenderCheck = (None, None, "")
+        else:
+            spec = self.sensors.specs[index]
+            check = (
+                index,
+                self._agrees(index, orientation, list(quaternion)),
+                limits_problem(min_cm, max_cm, spec.min_range_m, spec.max_range_m),
+            )
+        if len(checks) > 1024:  # a sender varying them: stay bounded
+            checks.clear()
+        checks[key] = check
+        return check
+
+    def _distance_sensor(self, msg: MAVLinkMessage, t_rx: float) -> bool:
+        sensor_id, orientation = int(msg.id), int(msg.orientation)
+        mn, mx = int(msg.min_distance), int(msg.max_distance)
+        quaternion: tuple[float, ...] = ()
         if orientation == MAV_SENSOR_ROTATION_CUSTOM:
             quaternion = tuple(getattr(msg, "quaternion", ()))
-            qkey = (index, quaternion)
-            if qkey in self._custom_ok:
-                ok = self._custom_ok[qkey]
-            else:
-                if len(self._custom_ok) > 1024:  # a sender varying it: stay bounded
-                    self._custom_ok.clear()
-                ok = self._custom_ok[qkey] = self._agrees(index, orientation, list(quaternion))
+            checks = self._custom_ok
+            key: tuple[Any, ...] = (sensor_id, mn, mx, quaternion)
         else:
-            okey = (index, orientation)
-            if okey in self._orientation_ok:
-                ok = self._orientation_ok[okey]
-            else:
-                ok = self._orientation_ok[okey] = self._agrees(index, orientation, [])
+            checks = self._sensor_ok
+            key = (sensor_id, orientation, mn, mx)
+        check = checks.get(key)
+        if check is None:
+            check = self._sender_check(checks, key, sensor_id, orientation, quaternion, mn, mx)
+        index, ok, problem = check
+        if index is None:
+            return self._reject("sensor_unknown_id", "id %d", sensor_id)
         if ok is None:
             if orientation != MAV_SENSOR_ROTATION_CUSTOM:
                 return self._reject(
-                    "sensor_orientation_unknown", "id %d orientation %d", int(msg.id), orientation
+                    "sensor_orientation_unknown", "id %d orientation %d", sensor_id, orientation
                 )
             self._count("sensor_orientation_unverified")
         elif not ok:
             return self._reject(
-                "sensor_orientation_mismatch", "id %d orientation %d", int(msg.id), orientation
+                "sensor_orientation_mismatch", "id %d orientation %d", sensor_id, orientation
             )
-        if not self._in_order(self._order_keys[index], int(msg.time_boot_ms), t_rx):
+        time_boot_ms = int(msg.time_boot_ms)
+        if not self._in_order(self._order_keys[index], time_boot_ms, t_rx):
             return False
         spec = self.sensors.specs[index]
-        lo, hi = spec.min_range_m, spec.max_range_m
-        mn, mx, cur = int(msg.min_distance), int(msg.max_distance), int(msg.current_distance)
-        lkey = (index, mn, mx)
-        problem = self._limits_seen.get(lkey)
-        if problem is None:
-            if len(self._limits_seen) > 1024:  # a sender varying them: stay bounded
-                self._limits_seen.clear()
-            problem = self._limits_seen[lkey] = limits_problem(mn, mx, lo, hi)
         if problem:
             # The sender's limits contradict the configured ones: one of the two is wrong,
             # and a reading cannot be trusted to mean what the planner will take it for.
@@ -615,7 +638,10 @@ class Telemetry:
                 self._limit_problem[index] = problem
                 self.notices.append(f"sensor {spec.sensor_id} refused: {problem}")
             return self._reject("sensor_limits", "sensor %s: %s", spec.sensor_id, problem)
-        self._limit_problem.pop(index, None)
+        if self._limit_problem:
+            self._limit_problem.pop(index, None)
+        lo = spec.min_range_m
+        cur = int(msg.current_distance)
         # 65535 is MAVLink's "unknown"; 0 < d < min is "too close to measure", not "nothing":
         # something is there, at most at the minimum range. Everything else that means
         # "nothing detected" is the planner's rule (`SensorTable.valid`), applied here.
@@ -636,7 +662,7 @@ class Telemetry:
             why = "range_none" if d <= 0.0 else "range_at_max"
             self._count(why, logging.INFO, " (sensor %s: %d cm)", spec.sensor_id, cur)
             d = 0.0
-        raw = RangeReading(d, int(msg.time_boot_ms), t_rx)
+        raw = RangeReading(d, time_boot_ms, t_rx)
         self.ranges[index] = self._filtered(index, raw)
         return True
 
