@@ -6,6 +6,7 @@ refinement of a raster hit on the analytic height function. World ENU, metres.
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from typing import Any, NamedTuple
 
 import numpy as np
@@ -13,6 +14,9 @@ from numpy.typing import NDArray
 
 from companion.planner.types import FloatArray
 from companion.sim.world.features import BBox, HeightFn
+
+BoxedHeightFn = Callable[[FloatArray, FloatArray, BBox], FloatArray]
+"""A height function also given its points' bounding box (xmin, xmax, ymin, ymax)."""
 
 
 class Raster:
@@ -162,24 +166,41 @@ def local_min(
     fn: HeightFn,
     target: float = 0.005,
     max_moves: int = 16,
+    boxed: BoxedHeightFn | None = None,
 ) -> float:
     """Refine min sqrt(|q - p_xy|^2 + max(0, pz - fn(q))^2) (m) around (qx, qy).
 
     Evaluates fn on square grids of half-width `span` (m) centred on the best point so
     far: while the best point lands near the grid's edge the grid follows it (up to
     max_moves times), otherwise it shrinks, until its step is below `target` (m). The
-    first grid also holds p_xy itself; if p is at or below fn there, returns 0.
+    first grid also holds p_xy itself; if p is at or below fn there, returns 0. boxed:
+    fn given the points' bounding box too (xmin, xmax, ymin, ymax; known here for each
+    grid: its corners, and p), used instead of fn if given.
     """
     px, py, pz = p
     gx, gy = _GRID_FIRST
     first = True
     moves = 0
     while True:
-        X = qx + span * gx
-        Y = qy + span * gy
+        size = gx.size + 1 if first else gx.size
+        X = np.empty(size)
+        Y = np.empty(size)
+        # qx + span g, as (span g) + qx; p_xy last on the first grid
+        np.multiply(gx, span, out=X[: gx.size])
+        X[: gx.size] += qx
+        np.multiply(gy, span, out=Y[: gy.size])
+        Y[: gy.size] += qy
         if first:
-            X, Y = np.append(X, px), np.append(Y, py)
-        d2 = (X - px) ** 2 + (Y - py) ** 2 + np.maximum(pz - fn(X, Y), 0.0) ** 2
+            X[-1], Y[-1] = px, py
+        if boxed is None:
+            z = fn(X, Y)
+        else:
+            # the grid's extremes are its corners (g = -1 and 1: exactly qx -+ span)
+            x0, x1, y0, y1 = qx - span, qx + span, qy - span, qy + span
+            if first:
+                x0, x1, y0, y1 = min(x0, px), max(x1, px), min(y0, py), max(y1, py)
+            z = boxed(X, Y, (x0, x1, y0, y1))
+        d2 = (X - px) ** 2 + (Y - py) ** 2 + np.maximum(pz - z, 0.0) ** 2
         if first and d2[-1] == 0.0:
             return 0.0
         first = False

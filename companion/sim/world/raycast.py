@@ -317,15 +317,12 @@ class RayCaster:
                 m = max(m_sub, math.ceil(float(whole.max()) / fine))
         return out
 
-    @staticmethod
-    def _sum_at(feats: list[Feature], o: FloatArray, d: FloatArray, T: FloatArray) -> FloatArray:
-        """Sum of the features' contributions at o + T d, (n, m) for T (n, m)."""
+    def _sum_at(self, feats: list[Feature], o: FloatArray, d: FloatArray, T: FloatArray) -> FloatArray:
+        """Sum of the features' contributions at o + T d, (n, m) for T (n, m): every hill
+        of a kind at once (`AdditiveSum`), bit for bit the sum feature by feature."""
         # x and y in one pass: (2, n, m), element for element as o_x + d_x T and o_y + d_y T
-        X, Y = o[:, :2].T[:, :, None] + d[:, :2].T[:, :, None] * T
-        N = feats[0].evaluate(X, Y)
-        for f in feats[1:]:
-            N = N + f.evaluate(X, Y)
-        return N
+        xy = o[:, :2].T[:, :, None] + d[:, :2].T[:, :, None] * T
+        return self.field.sum_of(feats)(xy)
 
     def _refine_terrain(
         self,
