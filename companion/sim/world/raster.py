@@ -93,8 +93,42 @@ class Raster:
         if bx0 >= bx1 or by0 >= by1:
             return NO_HIT
         w = (slice(by0, by1), slice(bx0, bx1))
+        if (by1 - by0) * (bx1 - bx0) <= self.WHOLE_WINDOW_BLOCKS:
+            hit = self._search_whole(px, py, pz, r, w)
+            if hit is not None:
+                return hit
         cols = (self.brx0[w], self.bry0[w], self.bmax[w], self.ax[w], self.ay[w], self.zb[w])
         return self._search(px, py, pz, r, cols)
+
+    WHOLE_WINDOW_BLOCKS = 400
+    """`search_window` measures every sample of a window of at most this many blocks (fewer
+    array operations than pruning blocks first)."""
+
+    def _search_whole(
+        self, px: float, py: float, pz: float, ub: float, w: tuple[slice, slice]
+    ) -> Hit | None:
+        """`_search` over the blocks w by measuring all their samples: the same nearest
+        sample (ties: the first in block order, as `_search` takes them), or None where
+        `_search` would have pruned it (farther than its bound: `_search` decides)."""
+        rx0 = self.brx0[w][:, :, None, None]
+        ry0 = self.bry0[w][:, :, None, None]
+        offs = self.offs
+        xs = rx0 + offs[None, None, None, :] - px  # (by, bx, 1, B), as _search's
+        ys = ry0 + offs[None, None, :, None] - py  # (by, bx, B, 1)
+        dz = np.maximum(pz - self.zb[w].astype(np.float64), 0.0)
+        d2 = xs * xs + ys * ys + dz**2
+        if d2.size == 0:
+            return NO_HIT
+        k = int(np.argmin(d2))
+        best = float(d2.flat[k])
+        if not math.isfinite(best):
+            return NO_HIT
+        # _search keeps the blocks whose bound is within ub2 (<= ub^2 and <= this sample's
+        # block's own bound): this sample is among them if it is within ub^2.
+        if not best <= ub * ub:
+            return None
+        kby, kbx, ky, kx = np.unravel_index(k, d2.shape)
+        return Hit(math.sqrt(best), float(xs[kby, kbx, 0, kx]) + px, float(ys[kby, kbx, ky, 0]) + py)
 
     def search_all(self, px: float, py: float, pz: float, ub: float) -> Hit:
         """`_search` over every block that holds solid."""
