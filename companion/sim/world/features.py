@@ -402,9 +402,7 @@ class AdditiveSum:
         # per hill, as `_GaussianHill.evaluate` computes them: centre; round: -0.5 / sigma^2
         # and h; elliptic: cos, sin, sigma_x, sigma_y, h
         self._rnd = np.array([[f.cx, f.cy, -0.5 / f.sx**2, f.h] for f in rnd]).reshape(-1, 4)
-        self._ell = np.array([[f.cx, f.cy, f.c, f.s, f.sx, f.sy, f.h] for f in ell]).reshape(
-            -1, 7
-        )
+        self._ell = np.array([[f.cx, f.cy, f.c, f.s, f.sx, f.sy, f.h] for f in ell]).reshape(-1, 7)
         self._shaped: dict[int, tuple[FloatArray, ...]] = {}
 
     def _params(self, nd: int) -> tuple[FloatArray, ...]:
@@ -428,7 +426,7 @@ class AdditiveSum:
         k = len(self.feats)
         if k == 0:
             return np.full(xy.shape[1:], 0.0 if base is None else base)
-        if k == 1 or xy[0].size * k > self.MAX_BATCH:
+        if k == 1 or xy.ndim == 1 or xy[0].size * k > self.MAX_BATCH:  # (0-d: arrays out)
             return self._one_by_one(xy, base)
         p = self._params(xy.ndim - 1)
         rnd = self._round(xy, p) if self._rnd.shape[0] else xy
@@ -438,19 +436,13 @@ class AdditiveSum:
             out: FloatArray = np.add.reduce(rnd, axis=0)  # in order along axis 0
             return out
         ell = self._elliptic(xy, p) if self._ell.shape[0] else xy
-        z: FloatArray | None = None
-        for kind, j in self._order:
-            if kind == 0:
-                t = rnd[j]
-            elif kind == 1:
-                t = ell[j]
-            else:
-                t = self.feats[j].evaluate(xy[0], xy[1])
-            if z is None:
-                z = t if base is None else t + base
-            else:
-                z = z + t
-        assert z is not None
+        terms = [
+            rnd[j] if kind == 0 else ell[j] if kind == 1 else self.feats[j].evaluate(xy[0], xy[1])
+            for kind, j in self._order
+        ]
+        z = terms[0] if base is None else terms[0] + base
+        for t in terms[1:]:
+            z = z + t
         return z
 
     def _one_by_one(self, xy: FloatArray, base: float | None) -> FloatArray:
@@ -459,7 +451,7 @@ class AdditiveSum:
             z = self.feats[0].evaluate(x, y)
             for f in self.feats[1:]:
                 z = z + f.evaluate(x, y)
-            return z
+            return np.asarray(z)  # (0-d: not a numpy scalar)
         z = np.full(xy.shape[1:], base)
         for f in self.feats:
             z += f.evaluate(x, y)

@@ -128,7 +128,9 @@ class Raster:
         if not best <= ub * ub:
             return None
         kby, kbx, ky, kx = np.unravel_index(k, d2.shape)
-        return Hit(math.sqrt(best), float(xs[kby, kbx, 0, kx]) + px, float(ys[kby, kbx, ky, 0]) + py)
+        return Hit(
+            math.sqrt(best), float(xs[kby, kbx, 0, kx]) + px, float(ys[kby, kbx, ky, 0]) + py
+        )
 
     def search_all(self, px: float, py: float, pz: float, ub: float) -> Hit:
         """`_search` over every block that holds solid."""

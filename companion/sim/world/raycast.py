@@ -317,7 +317,9 @@ class RayCaster:
                 m = max(m_sub, math.ceil(float(whole.max()) / fine))
         return out
 
-    def _sum_at(self, feats: list[Feature], o: FloatArray, d: FloatArray, T: FloatArray) -> FloatArray:
+    def _sum_at(
+        self, feats: list[Feature], o: FloatArray, d: FloatArray, T: FloatArray
+    ) -> FloatArray:
         """Sum of the features' contributions at o + T d, (n, m) for T (n, m): every hill
         of a kind at once (`AdditiveSum`), bit for bit the sum feature by feature."""
         # x and y in one pass: (2, n, m), element for element as o_x + d_x T and o_y + d_y T
