@@ -224,3 +224,29 @@ def _window(ras: Raster, px: float, py: float, r: float) -> tuple[slice, slice] 
     if bx0 >= bx1 or by0 >= by1:
         return None
     return (slice(by0, by1), slice(bx0, bx1))
+
+
+@pytest.mark.parametrize("seed", [5, 9])
+def test_a_lazy_raster_samples_what_the_whole_grid_would(seed: int) -> None:
+    world = _random_world(seed)
+    field = world.field
+    cell = 0.25  # (a coarser grid than the world's: the whole one is built here too)
+    whole = Raster(world.extent(), cell, field.terrain_culled)
+    lazy = Raster(world.extent(), cell, field.terrain_culled, field.terrain)
+    rng = np.random.default_rng(seed)
+    x0, x1, y0, y1 = world.extent()
+    for _ in range(150):
+        px, py = float(rng.uniform(x0, x1)), float(rng.uniform(y0, y1))
+        pz = float(world.terrain_height(px, py)) + float(rng.uniform(0.1, 4.0))
+        r = float(rng.uniform(0.2, 6.0))
+        assert lazy.nearest_sample(px, py, pz) == whole.nearest_sample(px, py, pz)
+        assert lazy.search_window(px, py, pz, r) == whole.search_window(px, py, pz, r)
+    built = lazy._built
+    assert 0 < built.sum() < built.size / 2, "the searches should sample part of the grid"
+    np.testing.assert_array_equal(lazy.zb[built], whole.zb[built])
+    for name in ("bmax", "ax", "ay"):
+        np.testing.assert_array_equal(getattr(lazy, name)[built], getattr(whole, name)[built])
+    # every block that holds solid, sampling the rest
+    for a, b in zip(lazy._ne_cols, whole._ne_cols, strict=True):
+        np.testing.assert_array_equal(a, b)
+    assert lazy._built.all()

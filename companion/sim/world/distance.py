@@ -31,7 +31,7 @@ class Distances:
     def _terrain_ras(self) -> Raster:
         if self._terrain_raster is None:
             self._terrain_raster = Raster(
-                self.extent, self.raster_cell_m, self.field.terrain_culled
+                self.extent, self.raster_cell_m, self.field.terrain_culled, self.field.terrain
             )
         return self._terrain_raster
 

@@ -30,7 +30,12 @@ class Raster:
 
     B = 8
 
-    def __init__(self, bbox: BBox, cell: float, fn: HeightFn) -> None:
+    def __init__(
+        self, bbox: BBox, cell: float, fn: HeightFn, boxed: BoxedHeightFn | None = None
+    ) -> None:
+        """fn(x, y): the heights, evaluated over rows of the grid at once. boxed: the same
+        function given the bounding box fn would measure; if given, blocks are sampled
+        when a search first needs them (`_ensure`), bit for bit as the whole grid would."""
         B = self.B
         # Grid points on multiples of the cell, covering bbox.
         self.x0 = math.floor(bbox[0] / cell) * cell
@@ -47,11 +52,26 @@ class Raster:
         self.x1 = self.x0 + (self.nx - 1) * cell
         self.y1 = self.y0 + (self.ny - 1) * cell
         self.nbx, self.nby = -(-self.nx // B), -(-self.ny // B)
+        self._xs = self.x0 + np.arange(self.nx, dtype=np.float64) * cell
+        self._rows = max(1, 1_000_000 // self.nx)  # grid rows per evaluation of fn
+        span = B * cell
+        self.brx0 = self.x0 + np.arange(self.nbx, dtype=np.float64)[None, :] * span
+        self.bry0 = self.y0 + np.arange(self.nby, dtype=np.float64)[:, None] * span
+        self.brx0, self.bry0 = np.broadcast_arrays(self.brx0, self.bry0)
+        self.offs = np.arange(B, dtype=np.float64) * cell
+        self._boxed = boxed
+        self._ne: tuple[NDArray[np.floating[Any]], ...] | None = None
+        if boxed is not None:
+            self.zb = np.full((self.nby, self.nbx, B, B), -np.inf, dtype=np.float32)
+            self.bmax = np.full((self.nby, self.nbx), -np.inf)
+            self.ax = self.brx0.copy()
+            self.ay = self.bry0.copy()
+            self._built = np.zeros((self.nby, self.nbx), dtype=bool)
+            return
         z = np.full((self.nby * B, self.nbx * B), -np.inf, dtype=np.float32)
-        xs = self.x0 + np.arange(self.nx, dtype=np.float64) * cell
-        rows = max(1, 1_000_000 // self.nx)
-        for r0 in range(0, self.ny, rows):
-            r1 = min(self.ny, r0 + rows)
+        xs = self._xs
+        for r0 in range(0, self.ny, self._rows):
+            r1 = min(self.ny, r0 + self._rows)
             ys = self.y0 + np.arange(r0, r1, dtype=np.float64) * cell
             z[r0:r1, : self.nx] = fn(xs[None, :], ys[:, None])
         # Block-major copy: zb[by, bx] is the B x B block (rows y, cols x).
@@ -59,23 +79,62 @@ class Raster:
         flat = self.zb.reshape(self.nby, self.nbx, B * B)
         arg = np.argmax(flat, axis=2)
         self.bmax = np.take_along_axis(flat, arg[..., None], axis=2)[..., 0].astype(np.float64)
-        span = B * cell
-        self.brx0 = self.x0 + np.arange(self.nbx, dtype=np.float64)[None, :] * span
-        self.bry0 = self.y0 + np.arange(self.nby, dtype=np.float64)[:, None] * span
-        self.brx0, self.bry0 = np.broadcast_arrays(self.brx0, self.bry0)
         self.ax = self.brx0 + (arg % B) * cell
         self.ay = self.bry0 + (arg // B) * cell
-        self.offs = np.arange(B, dtype=np.float64) * cell
-        ne = np.nonzero(np.isfinite(self.bmax))
-        self._ne_cols = tuple(
-            a[ne] for a in (self.brx0, self.bry0, self.bmax, self.ax, self.ay, self.zb)
-        )
+
+    def _ensure(self, by0: int, by1: int, bx0: int, bx1: int) -> None:
+        """Sample the blocks [by0, by1) x [bx0, bx1) not sampled yet (a lazy raster): each
+        with the features the whole grid's evaluation of its rows would have used."""
+        if self._boxed is None or self._built[by0:by1, bx0:bx1].all():
+            return
+        B, cell = self.B, self.cell
+        for by in range(by0, by1):
+            missing = np.flatnonzero(~self._built[by, bx0:bx1])
+            if not missing.size:
+                continue
+            c0, c1 = bx0 + int(missing[0]), bx0 + int(missing[-1]) + 1
+            i0, i1 = c0 * B, min(c1 * B, self.nx)
+            z = np.full((B, (c1 - c0) * B), -np.inf, dtype=np.float32)
+            r = by * B
+            while r < min(by * B + B, self.ny):
+                # the rows' evaluation in __init__: rows k*_rows .. , its box measured on
+                # the whole width and those rows
+                k0 = r // self._rows * self._rows
+                k1 = min(self.ny, k0 + self._rows)
+                ys = self.y0 + np.arange(k0, k1, dtype=np.float64) * cell
+                box = (float(self._xs[0]), float(self._xs[-1]), float(ys[0]), float(ys[-1]))
+                r1 = min(by * B + B, k1)
+                seg = ys[r - k0 : r1 - k0]
+                z[r - by * B : r1 - by * B, : i1 - i0] = self._boxed(
+                    self._xs[None, i0:i1], seg[:, None], box
+                )
+                r = r1
+            blocks = z.reshape(B, c1 - c0, B).transpose(1, 0, 2)
+            self.zb[by, c0:c1] = blocks
+            flat = self.zb[by, c0:c1].reshape(c1 - c0, B * B)
+            arg = np.argmax(flat, axis=1)
+            self.bmax[by, c0:c1] = flat[np.arange(c1 - c0), arg].astype(np.float64)
+            self.ax[by, c0:c1] = self.brx0[by, c0:c1] + (arg % B) * cell
+            self.ay[by, c0:c1] = self.bry0[by, c0:c1] + (arg // B) * cell
+            self._built[by, c0:c1] = True
+
+    @property
+    def _ne_cols(self) -> tuple[NDArray[np.floating[Any]], ...]:
+        """The blocks that hold solid, as `_search`'s columns (samples every block)."""
+        if self._ne is None:
+            self._ensure(0, self.nby, 0, self.nbx)
+            ne = np.nonzero(np.isfinite(self.bmax))
+            self._ne = tuple(
+                a[ne] for a in (self.brx0, self.bry0, self.bmax, self.ax, self.ay, self.zb)
+            )
+        return self._ne
 
     def nearest_sample(self, px: float, py: float, pz: float) -> tuple[float, float, float]:
         """(distance, qx, qy) to the solid under the grid point nearest p_xy (inside)."""
         ix = min(max(round((px - self.x0) / self.cell), 0), self.nx - 1)
         iy = min(max(round((py - self.y0) / self.cell), 0), self.ny - 1)
         B = self.B
+        self._ensure(iy // B, iy // B + 1, ix // B, ix // B + 1)
         z = float(self.zb[iy // B, ix // B, iy % B, ix % B])
         qx, qy = self.x0 + ix * self.cell, self.y0 + iy * self.cell
         return math.hypot(qx - px, qy - py, max(pz - z, 0.0)), qx, qy
@@ -92,6 +151,7 @@ class Raster:
         by1 = min(self.nby, int((py + r - self.y0) // span) + 1)
         if bx0 >= bx1 or by0 >= by1:
             return NO_HIT
+        self._ensure(by0, by1, bx0, bx1)
         w = (slice(by0, by1), slice(bx0, bx1))
         if (by1 - by0) * (bx1 - bx0) <= self.WHOLE_WINDOW_BLOCKS:
             hit = self._search_whole(px, py, pz, r, w)
