@@ -66,7 +66,7 @@ class HeightField:
 
     def terrain(self, x: FloatArray, y: FloatArray, box: BBox | None = None) -> FloatArray:
         feats = self.cull(self.additive, box)
-        if len(feats) > 1 and x.shape == y.shape:
+        if len(feats) > 1 and x.shape == y.shape and x.size * len(feats) <= AdditiveSum.MAX_BATCH:
             return self.sum_of(feats)(np.stack((x, y)), self.ground_z)
         z = np.full(np.broadcast_shapes(x.shape, y.shape), self.ground_z)
         for f in feats:

@@ -66,7 +66,8 @@ class Raster:
             self.bmax = np.full((self.nby, self.nbx), -np.inf)
             self.ax = self.brx0.copy()
             self.ay = self.bry0.copy()
-            self._built = np.zeros((self.nby, self.nbx), dtype=bool)
+            t = self.TILE
+            self._tiles = np.zeros((-(-self.nby // t), -(-self.nbx // t)), dtype=bool)
             return
         z = np.full((self.nby * B, self.nbx * B), -np.inf, dtype=np.float32)
         xs = self._xs
@@ -82,41 +83,63 @@ class Raster:
         self.ax = self.brx0 + (arg % B) * cell
         self.ay = self.bry0 + (arg // B) * cell
 
+    TILE = 16
+    """A lazy raster samples TILE x TILE blocks at a time (a few metres a side)."""
+
+    @property
+    def built_blocks(self) -> NDArray[np.bool_]:
+        """(nby, nbx): the blocks sampled so far."""
+        if self._boxed is None:
+            return np.ones((self.nby, self.nbx), dtype=bool)
+        t = self.TILE
+        full = np.repeat(np.repeat(self._tiles, t, axis=0), t, axis=1)
+        return full[: self.nby, : self.nbx]
+
     def _ensure(self, by0: int, by1: int, bx0: int, bx1: int) -> None:
-        """Sample the blocks [by0, by1) x [bx0, bx1) not sampled yet (a lazy raster): each
-        with the features the whole grid's evaluation of its rows would have used."""
-        if self._boxed is None or self._built[by0:by1, bx0:bx1].all():
+        """Sample the tiles that hold blocks [by0, by1) x [bx0, bx1), if not yet (a lazy
+        raster)."""
+        if self._boxed is None:
             return
+        t = self.TILE
+        ty0, ty1, tx0, tx1 = by0 // t, (by1 - 1) // t + 1, bx0 // t, (bx1 - 1) // t + 1
+        if self._tiles[ty0:ty1, tx0:tx1].all():
+            return
+        for ty in range(ty0, ty1):
+            for tx in range(tx0, tx1):
+                if not self._tiles[ty, tx]:
+                    self._sample(
+                        ty * t, min(ty * t + t, self.nby), tx * t, min(tx * t + t, self.nbx)
+                    )
+                    self._tiles[ty, tx] = True
+
+    def _sample(self, by0: int, by1: int, bx0: int, bx1: int) -> None:
+        """Sample blocks [by0, by1) x [bx0, bx1): each row with the features the whole
+        grid's evaluation of its rows in __init__ uses (the features meeting those rows'
+        box, measured on the whole width), so every sample is the same, bit for bit."""
+        assert self._boxed is not None
         B, cell = self.B, self.cell
-        for by in range(by0, by1):
-            missing = np.flatnonzero(~self._built[by, bx0:bx1])
-            if not missing.size:
-                continue
-            c0, c1 = bx0 + int(missing[0]), bx0 + int(missing[-1]) + 1
-            i0, i1 = c0 * B, min(c1 * B, self.nx)
-            z = np.full((B, (c1 - c0) * B), -np.inf, dtype=np.float32)
-            r = by * B
-            while r < min(by * B + B, self.ny):
-                # the rows' evaluation in __init__: rows k*_rows .. , its box measured on
-                # the whole width and those rows
-                k0 = r // self._rows * self._rows
-                k1 = min(self.ny, k0 + self._rows)
-                ys = self.y0 + np.arange(k0, k1, dtype=np.float64) * cell
-                box = (float(self._xs[0]), float(self._xs[-1]), float(ys[0]), float(ys[-1]))
-                r1 = min(by * B + B, k1)
-                seg = ys[r - k0 : r1 - k0]
-                z[r - by * B : r1 - by * B, : i1 - i0] = self._boxed(
-                    self._xs[None, i0:i1], seg[:, None], box
-                )
-                r = r1
-            blocks = z.reshape(B, c1 - c0, B).transpose(1, 0, 2)
-            self.zb[by, c0:c1] = blocks
-            flat = self.zb[by, c0:c1].reshape(c1 - c0, B * B)
-            arg = np.argmax(flat, axis=1)
-            self.bmax[by, c0:c1] = flat[np.arange(c1 - c0), arg].astype(np.float64)
-            self.ax[by, c0:c1] = self.brx0[by, c0:c1] + (arg % B) * cell
-            self.ay[by, c0:c1] = self.bry0[by, c0:c1] + (arg // B) * cell
-            self._built[by, c0:c1] = True
+        nby, nbx = by1 - by0, bx1 - bx0
+        i0, i1 = bx0 * B, min(bx1 * B, self.nx)
+        z = np.full((nby * B, nbx * B), -np.inf, dtype=np.float32)
+        r, end = by0 * B, min(by1 * B, self.ny)
+        while r < end:
+            k0 = r // self._rows * self._rows  # the rows of __init__'s evaluation
+            k1 = min(self.ny, k0 + self._rows)
+            ys = self.y0 + np.arange(k0, k1, dtype=np.float64) * cell
+            box = (float(self._xs[0]), float(self._xs[-1]), float(ys[0]), float(ys[-1]))
+            r1 = min(end, k1)
+            seg = ys[r - k0 : r1 - k0]
+            z[r - by0 * B : r1 - by0 * B, : i1 - i0] = self._boxed(
+                self._xs[None, i0:i1], seg[:, None], box
+            )
+            r = r1
+        w = (slice(by0, by1), slice(bx0, bx1))
+        self.zb[w] = z.reshape(nby, B, nbx, B).transpose(0, 2, 1, 3)
+        flat = self.zb[w].reshape(nby, nbx, B * B)
+        arg = np.argmax(flat, axis=2)
+        self.bmax[w] = np.take_along_axis(flat, arg[..., None], axis=2)[..., 0].astype(np.float64)
+        self.ax[w] = self.brx0[w] + (arg % B) * cell
+        self.ay[w] = self.bry0[w] + (arg // B) * cell
 
     @property
     def _ne_cols(self) -> tuple[NDArray[np.floating[Any]], ...]:
