@@ -382,7 +382,9 @@ class AdditiveSum:
 
     Points as one stacked (2, ...) array of x and y (world ENU, metres)."""
 
-    MAX_BATCH = 1 << 16  # points x hills of a batch; beyond it, feature by feature (memory)
+    MAX_BATCH = 1 << 12
+    """points x hills of a batch; beyond it, feature by feature (the batch pays where the
+    arrays are small, numpy's cost per call ahead of its cost per element)."""
 
     def __init__(self, feats: Sequence[Feature]) -> None:
         self.feats = list(feats)
