@@ -3,7 +3,10 @@ flight, the pillars scenario's sensors from the poses of its in-process flight (
 cylinders: all rays meet all solids in one set of array operations), and the paper's sensors
 over a 1000 x 1000 height map (0.1 m cells, seeded smooth terrain) from seeded random poses
 1-5 m above it; and a ring of 8 proximity sectors (a fan of 9 rays each) with 4 surface
-beams over the paper world. Each cast is the simulator's: all rays of a pose in one call."""
+beams over the paper world; the same ring over a seeded random world (`companion.sim.worldgen`,
+hills and solids), against the reference cast that sums the hills one at a time (the two timed
+in turns, so their ratio holds on a loaded machine). Each cast is the simulator's: all rays of
+a pose in one call."""
 
 from __future__ import annotations
 
@@ -19,12 +22,51 @@ from bench.report import Section
 from companion.harness.closed_loop import run as closed_loop_run
 from companion.planner import VehicleState
 from companion.planner.rotations import r_g
+from companion.planner.types import FloatArray
 from companion.sim.scenario import load_scenario
 from companion.sim.sensing import SensorFan
 from companion.sim.world import HeightmapConfig, World, WorldConfig
+from companion.sim.world.features import Feature
+from companion.sim.world.raycast import RayCaster
+from companion.sim.worldgen import generate
 
 HEIGHTMAP_CELLS = 1000
 HEIGHTMAP_RES_M = 0.1
+RANDOM_WORLD_SEED = 9
+"""A seeded random world of 9 hills (2 elliptic), 2 mesas, a box and a cliff."""
+
+
+class _HillsOneByOne(RayCaster):
+    """The reference cast: the terrain's features summed one at a time (as before the
+    batched sum), otherwise the same cast, bit for bit."""
+
+    def _sum_at(
+        self, feats: list[Feature], o: FloatArray, d: FloatArray, T: FloatArray
+    ) -> FloatArray:
+        X, Y = o[:, :2].T[:, :, None] + d[:, :2].T[:, :, None] * T
+        N = feats[0].evaluate(X, Y)
+        for f in feats[1:]:
+            N = N + f.evaluate(X, Y)
+        return N
+
+
+def route_poses(
+    world: World, points: np.ndarray, count: int, above_m: float = 2.0
+) -> list[VehicleState]:
+    """count poses along a route's polyline (points (k, 2), ENU m), above_m over the
+    surface, heading along the leg."""
+    legs = np.diff(points, axis=0)
+    lengths = np.hypot(legs[:, 0], legs[:, 1])
+    s = np.linspace(0.0, float(lengths.sum()), count, endpoint=False)
+    k = np.minimum(np.searchsorted(np.cumsum(lengths), s, side="right"), len(legs) - 1)
+    start = np.concatenate([[0.0], np.cumsum(lengths)[:-1]])[k]
+    xy = points[k] + legs[k] * ((s - start) / lengths[k])[:, None]
+    z = world.height(xy[:, 0], xy[:, 1]) + above_m
+    yaw = np.arctan2(legs[k, 1], legs[k, 0])
+    return [
+        VehicleState(np.array([x, y, h]), 0.0, 0.0, float(w))
+        for (x, y), h, w in zip(xy, z, yaw, strict=True)
+    ]
 
 
 def heightmap(n: int = HEIGHTMAP_CELLS, seed: int = 6) -> np.ndarray:
@@ -40,8 +82,19 @@ def heightmap(n: int = HEIGHTMAP_CELLS, seed: int = 6) -> np.ndarray:
     return z
 
 
+def _casts(
+    sensors_dirs: np.ndarray, max_range: np.ndarray, poses: list[VehicleState]
+) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
+    """(origins, directions, ranges) of each pose's cast."""
+    out = []
+    for st in poses:
+        dirs = sensors_dirs @ r_g(st.roll_rad, st.pitch_rad, st.yaw_rad).T
+        out.append((np.broadcast_to(st.position_enu, dirs.shape), dirs, max_range))
+    return out
+
+
 def _time_casts(
-    world: World,
+    world: World | RayCaster,
     sensors_dirs: np.ndarray,
     max_range: np.ndarray,
     poses: list[VehicleState],
@@ -49,6 +102,7 @@ def _time_casts(
 ) -> float:
     """Mean ns per ray of one `World.raycast` call of all sensors per pose."""
     clock = time.perf_counter_ns
+    cast = world.raycast if isinstance(world, World) else world.cast
     total = 0
     rays = 0
     for _ in range(repeats):
@@ -57,7 +111,7 @@ def _time_casts(
             dirs = sensors_dirs @ rot.T
             origins = np.broadcast_to(st.position_enu, dirs.shape)
             t0 = clock()
-            world.raycast(origins, dirs, max_range)
+            cast(origins, dirs, max_range)
             total += clock() - t0
             rays += len(dirs)
     return total / rays
@@ -85,6 +139,36 @@ def run(flight: Flight, poses: int = 300, repeats: int = 3) -> Section:
         f"per ray, paper world, 8 sector fans + 4 beams ({len(fan.owner)}-ray casts)",
         fan_ns / 1e3,
         "us",
+    )
+
+    # The ring over a random world, against the reference cast, in turns.
+    gen = generate(RANDOM_WORLD_SEED)
+    r_world = World.from_config(gen.world)
+    reference = _HillsOneByOne(r_world.field, r_world.ray_step_m, r_world.scan_step_m)
+    r_poses = route_poses(r_world, np.array(gen.route.points, dtype=np.float64), poses)
+    ring_dirs, ring_range = fan.directions_flu, ring.max_range_m[fan.owner]
+    fast_ns, ref_ns = [], []
+    for _ in range(repeats):
+        fast_ns.append(_time_casts(r_world, ring_dirs, ring_range, r_poses, 1))
+        ref_ns.append(_time_casts(reference, ring_dirs, ring_range, r_poses, 1))
+    sec.add(
+        "ray.random_world_fans_us",
+        f"per ray, random world {RANDOM_WORLD_SEED}, 8 sector fans + 4 beams "
+        f"({len(fan.owner)}-ray casts)",
+        min(fast_ns) / 1e3,
+        "us",
+    )
+    same = all(
+        np.array_equal(r_world.raycast(*c), reference.cast(*c))
+        for c in _casts(ring_dirs, ring_range, r_poses[:: max(1, len(r_poses) // 20)])
+    )
+    sec.details["random_world"] = {"seed": RANDOM_WORLD_SEED, "poses": len(r_poses)}
+    sec.details["random_world_same_ranges_as_reference"] = same
+    sec.add(
+        "ray.random_world_fans_ref_ratio",
+        "same, reference cast (hills one at a time) / this cast",
+        min(ref_ns) / min(fast_ns),
+        "x",
     )
 
     p_scenario, p_world = load("pillars")

@@ -150,7 +150,7 @@ def run(
                 sp.yaw_rad,
                 sp.pitch_rad,
                 float(phi_star.max()),
-                float(diag.threshold_rad[int(np.argmax(phi_star - diag.threshold_rad))]),
+                float(diag.threshold_rad[int((phi_star - diag.threshold_rad).argmax())]),
                 diag.decision.value,
                 diag.mode.value,
                 diag.side.value,

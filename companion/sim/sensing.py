@@ -60,8 +60,9 @@ class SensorFan:
         dirs = self.directions_flu @ r_world_body.T
         origins = np.empty_like(dirs)  # (cheaper than np.broadcast_to for a few rays)
         origins[:] = position_enu
-        hits = np.asarray(raycast(origins, dirs, np.asarray(max_range_m)[self.owner]))
-        if self.narrow:
-            return hits
+        rng = np.asarray(max_range_m)
+        if self.narrow:  # one ray per sensor, in order: owner is 0, 1, 2, ...
+            return np.asarray(raycast(origins, dirs, rng))
+        hits = np.asarray(raycast(origins, dirs, rng[self.owner]))
         out: FloatArray = np.minimum.reduceat(hits, self.starts)
         return out

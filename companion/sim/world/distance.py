@@ -31,7 +31,7 @@ class Distances:
     def _terrain_ras(self) -> Raster:
         if self._terrain_raster is None:
             self._terrain_raster = Raster(
-                self.extent, self.raster_cell_m, self.field.terrain_culled
+                self.extent, self.raster_cell_m, self.field.terrain_culled, self.field.terrain
             )
         return self._terrain_raster
 
@@ -162,13 +162,24 @@ class Distances:
                     d, qx, qy = hit
                 if d > ub + 2.0 * cell:  # refining cannot gain that much on smooth terrain
                     return d
-                return local_min(p, qx, qy, d, cell, self.field.terrain_culled)
+                return local_min(
+                    p, qx, qy, d, cell, self.field.terrain_culled, boxed=self.field.terrain
+                )
         # Outside the raster: analytic search on local grids within the clearance.
         c = pz - float(self.field.terrain_culled(np.array(px), np.array(py)))
         if c <= 0.0:
             return 0.0
         span = min(c, ub)
-        return local_min(p, px, py, c, span, self.field.terrain_culled, target=0.2 * cell)
+        return local_min(
+            p,
+            px,
+            py,
+            c,
+            span,
+            self.field.terrain_culled,
+            target=0.2 * cell,
+            boxed=self.field.terrain,
+        )
 
     def obstacle_distance(self, p: ArrayLike) -> float:
         """Shortest 3-D distance (m) from p (3,) ENU to the obstacle features' solid.

@@ -375,6 +375,123 @@ class _Heightmap(Feature):
         return FeatureInfo(self.name, self.type, self.obstacle, poly, None)
 
 
+class AdditiveSum:
+    """The sum of additive features at points, every gaussian hill of a kind (round or
+    elliptic) in one set of array operations: bit for bit the sum feature by feature in
+    their order, ((base + f0) + f1) + ..., each term as `Feature.evaluate` gives it.
+
+    Points as one stacked (2, ...) array of x and y (world ENU, metres)."""
+
+    MAX_BATCH = 1 << 12
+    """points x hills of a batch; beyond it, feature by feature (the batch pays where the
+    arrays are small, numpy's cost per call ahead of its cost per element)."""
+
+    def __init__(self, feats: Sequence[Feature]) -> None:
+        self.feats = list(feats)
+        rnd: list[_GaussianHill] = []
+        ell: list[_GaussianHill] = []
+        self._order: list[tuple[int, int]] = []  # (kind: 0 round, 1 elliptic, 2 other, index)
+        for i, f in enumerate(self.feats):
+            if isinstance(f, _GaussianHill) and f.sx == f.sy:
+                self._order.append((0, len(rnd)))
+                rnd.append(f)
+            elif isinstance(f, _GaussianHill):
+                self._order.append((1, len(ell)))
+                ell.append(f)
+            else:
+                self._order.append((2, i))
+        self._only_rnd = len(rnd) == len(self.feats)
+        # per hill, as `_GaussianHill.evaluate` computes them: centre; round: -0.5 / sigma^2
+        # and h; elliptic: cos, sin, sigma_x, sigma_y, h
+        self._rnd = np.array([[f.cx, f.cy, -0.5 / f.sx**2, f.h] for f in rnd]).reshape(-1, 4)
+        self._ell = np.array([[f.cx, f.cy, f.c, f.s, f.sx, f.sy, f.h] for f in ell]).reshape(-1, 7)
+        self._shaped: dict[int, tuple[FloatArray, ...]] = {}
+
+    def _params(self, nd: int) -> tuple[FloatArray, ...]:
+        """The parameters shaped to broadcast against (k, 2, ...) and (k, ...), nd: the
+        points' dimensions."""
+        p = self._shaped.get(nd)
+        if p is None:
+            one = (1,) * nd
+            r, e = self._rnd, self._ell
+            p = self._shaped[nd] = (
+                r[:, :2].reshape(-1, 2, *one),
+                *(r[:, j].reshape(-1, *one) for j in (2, 3)),
+                e[:, :2].reshape(-1, 2, *one),
+                *(e[:, j].reshape(-1, *one) for j in range(2, 7)),
+            )
+        return p
+
+    def __call__(self, xy: FloatArray, base: float | None = None) -> FloatArray:
+        """The sum at points xy (2, ...), shape xy.shape[1:], with base added first if given
+        (zeros if there are neither features nor base)."""
+        k = len(self.feats)
+        if k == 0:
+            return np.full(xy.shape[1:], 0.0 if base is None else base)
+        if k == 1 or xy.ndim == 1 or xy[0].size * k > self.MAX_BATCH:  # (0-d: arrays out)
+            return self._one_by_one(xy, base)
+        p = self._params(xy.ndim - 1)
+        rnd = self._round(xy, p) if self._rnd.shape[0] else xy
+        if self._only_rnd:
+            if base is not None:
+                rnd[0] += base  # base + f0, as f0 + base
+            out: FloatArray = np.add.reduce(rnd, axis=0)  # in order along axis 0
+            return out
+        ell = self._elliptic(xy, p) if self._ell.shape[0] else xy
+        terms = [
+            rnd[j] if kind == 0 else ell[j] if kind == 1 else self.feats[j].evaluate(xy[0], xy[1])
+            for kind, j in self._order
+        ]
+        z = terms[0] if base is None else terms[0] + base
+        for t in terms[1:]:
+            z = z + t
+        return z
+
+    def _one_by_one(self, xy: FloatArray, base: float | None) -> FloatArray:
+        x, y = xy[0], xy[1]
+        if base is None:
+            z = self.feats[0].evaluate(x, y)
+            for f in self.feats[1:]:
+                z = z + f.evaluate(x, y)
+            return np.asarray(z)  # (0-d: not a numpy scalar)
+        z = np.full(xy.shape[1:], base)
+        for f in self.feats:
+            z += f.evaluate(x, y)
+        return z
+
+    @staticmethod
+    def _round(xy: FloatArray, p: tuple[FloatArray, ...]) -> FloatArray:
+        """(k, ...) h exp((dx^2 + dy^2) (-0.5 / sigma^2)) of the round hills."""
+        dd = xy - p[0]
+        dd *= dd
+        q = dd[:, 0] + dd[:, 1]
+        q *= p[1]
+        np.exp(q, out=q)
+        q *= p[2]
+        return q
+
+    @staticmethod
+    def _elliptic(xy: FloatArray, p: tuple[FloatArray, ...]) -> FloatArray:
+        """(k, ...) h exp(-0.5 (u^2 + v^2)) of the elliptic hills: u = (dx c + dy s) / sx,
+        v = (dy c - dx s) / sy."""
+        dd = xy - p[3]
+        dx, dy = dd[:, 0], dd[:, 1]
+        c, s, sx, sy, h = p[4:]
+        u = dx * c
+        u += dy * s
+        u /= sx
+        v = dy * c
+        v -= dx * s
+        v /= sy
+        u *= u
+        v *= v
+        u += v
+        u *= -0.5
+        np.exp(u, out=u)
+        u *= h
+        return u
+
+
 # Ray intervals of the solid columns, for n rays against k features of a kind at once: the
 # parameters as (k,) arrays, the results (n, k). Every element is computed by the same
 # operations as for one feature alone, so a batch gives bit-identical ranges.

@@ -12,7 +12,13 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from companion.planner.types import FloatArray
-from companion.sim.world.features import OBSTACLE_MIN_RISE_M, BBox, Feature, intersects
+from companion.sim.world.features import (
+    OBSTACLE_MIN_RISE_M,
+    AdditiveSum,
+    BBox,
+    Feature,
+    intersects,
+)
 
 
 class HeightField:
@@ -24,6 +30,15 @@ class HeightField:
         self.additive = [f for f in features if not f.solid]
         self.solid = [f for f in features if f.solid]
         self.obstacles = [f for f in features if f.obstacle]
+        self._sums: dict[tuple[int, ...], AdditiveSum] = {}
+
+    def sum_of(self, feats: list[Feature]) -> AdditiveSum:
+        """The batched sum of these additive features (made once per set)."""
+        key = tuple(map(id, feats))
+        s = self._sums.get(key)
+        if s is None:
+            s = self._sums[key] = AdditiveSum(feats)
+        return s
 
     @staticmethod
     def xy(x: ArrayLike, y: ArrayLike) -> tuple[FloatArray, FloatArray]:
@@ -50,8 +65,11 @@ class HeightField:
         return [f for f in feats if intersects(f.cull_bbox, box)]
 
     def terrain(self, x: FloatArray, y: FloatArray, box: BBox | None = None) -> FloatArray:
+        feats = self.cull(self.additive, box)
+        if len(feats) > 1 and x.shape == y.shape and x.size * len(feats) <= AdditiveSum.MAX_BATCH:
+            return self.sum_of(feats)(np.stack((x, y)), self.ground_z)
         z = np.full(np.broadcast_shapes(x.shape, y.shape), self.ground_z)
-        for f in self.cull(self.additive, box):
+        for f in feats:
             z += f.evaluate(x, y)
         return z
 

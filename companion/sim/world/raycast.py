@@ -18,6 +18,11 @@ from companion.planner.types import FloatArray
 from companion.sim.world.features import TINY, Feature, Plane, SolidColumns, intersects
 from companion.sim.world.heights import HeightField
 
+# reductions as ufunc methods: the same results, without ndarray methods' Python layer
+_MIN = np.minimum.reduce
+_MAX = np.maximum.reduce
+_SUM = np.add.reduce
+
 
 def ray_args(
     origins: ArrayLike, directions: ArrayLike, max_range_m: ArrayLike
@@ -29,13 +34,13 @@ def ray_args(
     if d.shape[0] != n:
         raise ValueError(f"origins and directions differ in length: {n} vs {d.shape[0]}")
     norm = np.sqrt(np.einsum("ij,ij->i", d, d))
-    if n and not (float(norm.min()) > 1e-12 and math.isfinite(float(norm.sum()))):
+    if n and not (float(_MIN(norm)) > 1e-12 and math.isfinite(float(_SUM(norm)))):
         raise ValueError("ray directions must be finite and non-zero")
     d = d / norm[:, None]
     rng = np.asarray(max_range_m, np.float64)
     if rng.shape != (n,):  # (np.broadcast_to costs more than a ray cast's arithmetic)
         rng = np.broadcast_to(rng, (n,))
-    if n and not (float(rng.min()) >= 0.0 and math.isfinite(float(rng.sum()))):
+    if n and not (float(_MIN(rng)) >= 0.0 and math.isfinite(float(_SUM(rng)))):
         raise ValueError("max_range_m must be finite and >= 0")
     return o, d, rng
 
@@ -119,8 +124,8 @@ class RayCaster:
             return np.full(0, np.inf)
         if not d.all():  # no zero components: slab tests divide by them
             d = np.where(d == 0.0, TINY, d)
-        r_max = float(rng.max())
-        lo3, hi3 = o.min(axis=0), o.max(axis=0)
+        r_max = float(_MAX(rng))
+        lo3, hi3 = _MIN(o, axis=0), _MAX(o, axis=0)
         box = (
             float(lo3[0]) - r_max,
             float(hi3[0]) + r_max,
@@ -176,7 +181,7 @@ class RayCaster:
         """
         n = o.shape[0]
         lip = sum(f.lipschitz for f in feats)
-        m = max(2, math.ceil(float(end.max()) / step))
+        m = max(2, math.ceil(float(_MAX(end)) / step))
         T = end[:, None] * _unit_steps(m)
         N = self._sum_at(feats, o, d, T)
         G = g0[:, None] + g1[:, None] * T
@@ -317,15 +322,14 @@ class RayCaster:
                 m = max(m_sub, math.ceil(float(whole.max()) / fine))
         return out
 
-    @staticmethod
-    def _sum_at(feats: list[Feature], o: FloatArray, d: FloatArray, T: FloatArray) -> FloatArray:
-        """Sum of the features' contributions at o + T d, (n, m) for T (n, m)."""
+    def _sum_at(
+        self, feats: list[Feature], o: FloatArray, d: FloatArray, T: FloatArray
+    ) -> FloatArray:
+        """Sum of the features' contributions at o + T d, (n, m) for T (n, m): every hill
+        of a kind at once (`AdditiveSum`), bit for bit the sum feature by feature."""
         # x and y in one pass: (2, n, m), element for element as o_x + d_x T and o_y + d_y T
-        X, Y = o[:, :2].T[:, :, None] + d[:, :2].T[:, :, None] * T
-        N = feats[0].evaluate(X, Y)
-        for f in feats[1:]:
-            N = N + f.evaluate(X, Y)
-        return N
+        xy = o[:, :2].T[:, :, None] + d[:, :2].T[:, :, None] * T
+        return self.field.sum_of(feats)(xy)
 
     def _refine_terrain(
         self,
