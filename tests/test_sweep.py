@@ -21,6 +21,7 @@ from companion.harness.sweep import (
     SweepOptions,
     Task,
     _HeldFaults,
+    _steep_clearance,
     load_layout,
     parse_seeds,
     run_local,
@@ -73,6 +74,11 @@ def _well_formed(r: dict[str, Any], d_min: float = 2.0) -> None:
     assert (r["stop_reason"] == "goal") == r["reached_goal"]
     if r["reached_goal"] and not r["collision"] and r["clearance_min_m"] >= d_min:
         assert r["outcome"] == "ok"
+    steep = r["steep_clearance_min_m"]  # (rounded like clearance_min_m)
+    if r["clearance_min_m"] >= d_min:
+        assert steep == ""
+    else:
+        assert steep == "" or r["clearance_min_m"] - 1e-4 <= steep < d_min
     assert r["stop_reason"] in ("goal", "finished off goal", "stalled", "timeout")
     for q in ("p50", "p95", "max"):
         v = r[f"height_err_{q}_m"]
@@ -296,3 +302,42 @@ def test_smoke_sweep_targets() -> None:
     assert np.nanmax(h_max) <= 0.15
     # Planner time (p99 <= 1 ms, max <= 5 ms) is printed above, not asserted: a test may not
     # depend on an idle machine. The sweep's summary reports it.
+
+
+def test_steep_clearance_leaves_out_the_mesas_the_paper_climbs() -> None:
+    """Below D_min beside a 30-degree mesa (under phi_max = 0.6 rad: climbed, H_d above it)
+    counts against the solids to go round only where a steeper solid is that near."""
+    from companion.sim.world import World
+    from companion.sim.world.schema import WorldConfig
+
+    base = load_scenario(Path(__file__).parent.parent / "config/scenarios/paper.yaml")
+    features = [
+        {
+            "type": "mesa",
+            "center": [0.0, 0.0],
+            "radius_m": 5.0,
+            "height_m": 4.0,
+            "side_slope_deg": 30.0,
+        },
+        {"type": "box", "center": [40.0, 0.0], "size_m": [4.0, 4.0, 6.0]},
+    ]
+    sc = base.model_copy(update={"world": WorldConfig.model_validate({"features": features})})
+    world = World.from_config(sc.world)
+    # beside the mesa's flank, then beside the box, 1.5 m from each; then far from both
+    xyz = np.array([[-8.0, 0.0, 2.0], [36.5, 0.0, 2.0], [20.0, 0.0, 2.0]])
+    mesa_flank = [-9.0 + 0.01 * k for k in range(400)]
+    xyz[0, 0] = next(x for x in mesa_flank if world.obstacle_distance((x, 0.0, 2.0)) < 1.5)
+    clearance = np.array([world.obstacle_distance(p) for p in xyz])
+    trace = {"x": xyz[:, 0], "y": xyz[:, 1], "z": xyz[:, 2], "clearance": clearance}
+    assert clearance[0] < 1.5 + 1e-9 and clearance[1] == pytest.approx(1.5)
+    assert _steep_clearance(sc, trace, 2.0) == pytest.approx(1.5)
+    only_mesa = {k: v[[0, 2]] for k, v in trace.items()}
+    assert math.isnan(_steep_clearance(sc, only_mesa, 2.0))
+    steep_mesa = sc.model_copy(deep=True)
+    steep_mesa.world.features[0].side_slope_deg = 40.0  # steeper than phi_max: gone round
+    world40 = World.from_config(steep_mesa.world)
+    x40 = next(x for x in mesa_flank if world40.obstacle_distance((x, 0.0, 2.0)) < 1.5)
+    d40 = world40.obstacle_distance((x40, 0.0, 2.0))
+    near40 = {"x": np.array([x40]), "y": np.zeros(1), "z": np.full(1, 2.0)}
+    near40["clearance"] = np.array([d40])
+    assert _steep_clearance(steep_mesa, near40, 2.0) == pytest.approx(d40)

@@ -29,11 +29,11 @@ import signal
 import socket
 import sys
 import time
-from collections.abc import Callable, Iterable, Iterator, Sequence
+from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
 from concurrent.futures import FIRST_COMPLETED, Future, ProcessPoolExecutor, wait
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, TextIO
+from typing import TYPE_CHECKING, Any, TextIO
 
 import numpy as np
 import yaml
@@ -44,6 +44,9 @@ from companion.sim.mavlink.faults import SensorFaults
 from companion.sim.vehicle import VehicleModelConfig
 from companion.sim.worldgen import WorldGenConfig, generate, scenario, scenario_yaml, to_scenario
 from companion.tuning import SensorConfig
+
+if TYPE_CHECKING:
+    from companion.sim.scenario import Scenario
 
 LAYOUT_DIR = Path(__file__).resolve().parents[2] / "config" / "sensors"
 DEFAULT_LAYOUTS = ("paper-11", "horizontal-7", "ring-8")
@@ -69,6 +72,7 @@ RECORD_FIELDS = (
     "collision",
     "collision_cycles",
     "clearance_min_m",
+    "steep_clearance_min_m",
     "height_err_p50_m",
     "height_err_p95_m",
     "height_err_max_m",
@@ -199,6 +203,7 @@ def run_task(task: Task) -> dict[str, Any]:
         collision=m["collisions"] > 0,
         collision_cycles=int(m["collisions"]),
         clearance_min_m=round(clearance, 4),
+        steep_clearance_min_m=_blank_nan(_steep_clearance(sc, tr, d_min)),
         height_err_p50_m=round(_pct(h_err[away], 50), 4),
         height_err_p95_m=round(_pct(h_err[away], 95), 4),
         height_err_max_m=round(float(h_err[away].max()) if away.any() else math.nan, 4),
@@ -488,6 +493,34 @@ def _hms(s: float) -> str:
     return f"{s // 3600}:{s // 60 % 60:02d}:{s % 60:02d}"
 
 
+def _steep_clearance(sc: Scenario, trace: Mapping[str, np.ndarray], d_min_m: float) -> float:
+    """Least true clearance (m) from the vehicle to the solids the paper's rule goes round:
+    every obstacle but a mesa whose flank is no steeper than phi_max (eq. 7 climbs that
+    one, keeping H_d above it; with H_d = D_min any height error below H_d then reads as a
+    clearance below D_min). Measured at the cycles below D_min to all solids (no other
+    cycle can be below it to some of them); NaN where it is not below D_min."""
+    from companion.sim.world import World
+
+    below = np.flatnonzero(trace["clearance"] < d_min_m)
+    if len(below) == 0:
+        return math.nan
+    limit_deg = math.degrees(sc.planner.phi_max_rad)
+    features = sc.world.features
+    steep = [f for f in features if not (f.type == "mesa" and f.side_slope_deg <= limit_deg)]
+    if len(steep) == len(features):  # nothing climbable: the same solids
+        least = float(trace["clearance"][below].min())
+    else:
+        world = World.from_config(sc.world.model_copy(update={"features": steep}))
+        xyz = np.column_stack([trace["x"][below], trace["y"][below], trace["z"][below]])
+        least = min(world.obstacle_distance(p) for p in xyz)
+    return least if least < d_min_m else math.nan
+
+
+def _blank_nan(v: float) -> float | str:
+    """v rounded to 0.1 mm, or "" for NaN (a record compares equal to itself)."""
+    return "" if math.isnan(v) else round(v, 4)
+
+
 def _num(v: Any) -> float:
     try:
         return float(v)
@@ -504,7 +537,7 @@ def summarize(rows: Sequence[dict[str, Any]], d_min_m: float) -> str:
         groups.setdefault((str(r["layout"]), str(r["vehicle"]), str(r["fault"])), []).append(r)
     head = (
         f"{'layout':<14}{'vehicle':<12}{'fault':<8}{'runs':>5}{'goal %':>8}{'coll':>5}"
-        f"{'<Dmin':>6}{'err':>4}  {'clearance min/p1/p5/median (m)':<31}"
+        f"{'<Dmin':>6}{'steep':>6}{'err':>4}  {'clearance min/p1/p5/median (m)':<31}"
         f"{'h err p95/max':<14}{'plan ms p99/max':<16}{'wall s mean/total'}"
     )
     lines = [head, "-" * len(head)]
@@ -516,6 +549,7 @@ def summarize(rows: Sequence[dict[str, Any]], d_min_m: float) -> str:
         clr = np.array([_num(r["clearance_min_m"]) for r in rs])
         clr = clr[np.isfinite(clr)]
         below = int(np.sum(clr < d_min_m))
+        steep = sum(math.isfinite(_num(r["steep_clearance_min_m"])) for r in rs)
         c = "/".join(f"{np.percentile(clr, q):.2f}" for q in (0, 1, 5, 50)) if len(clr) else "-"
 
         def worst(col: str, fmt: str = ".3f", rs: list[dict[str, Any]] = rs) -> str:
@@ -527,7 +561,7 @@ def summarize(rows: Sequence[dict[str, Any]], d_min_m: float) -> str:
         wall = wall[np.isfinite(wall)]
         lines.append(
             f"{layout:<14}{vehicle:<12}{fault:<8}{n:>5}{100.0 * goal / n:>8.1f}{coll:>5}"
-            f"{below:>6}{errors:>4}  {c:<31}"
+            f"{below:>6}{steep:>6}{errors:>4}  {c:<31}"
             f"{worst('height_err_p95_m') + '/' + worst('height_err_max_m'):<14}"
             f"{worst('planner_ms_p99', '.2f') + '/' + worst('planner_ms_max', '.2f'):<16}"
             f"{(f'{wall.mean():.1f}/{wall.sum():.0f}' if len(wall) else '-')}"
