@@ -75,6 +75,28 @@ def _heightmap_world(tmp_path: Path) -> World:
     return World.from_config(WorldConfig.model_validate({"features": feats}), tmp_path)
 
 
+def test_many_round_hills_at_one_point_sum_front_to_back() -> None:
+    """A single point (shapes (1,) and (1, 1)): numpy would sum a (k, 1) stack of k >= 8
+    hills pairwise; the batch must give the one-by-one sum there too."""
+    rng = np.random.default_rng(11)
+    hills = [
+        {
+            "type": "gaussian_hill",
+            "center": rng.uniform(-20.0, 20.0, 2).tolist(),
+            "height_m": float(rng.uniform(-3.0, 3.0)),
+            "sigma_m": float(rng.uniform(2.0, 9.0)),
+        }
+        for _ in range(15)
+    ]
+    world = World.from_config(WorldConfig.model_validate({"features": hills}))
+    feats = world.field.additive
+    batch = AdditiveSum(feats)
+    for shape in [(1,), (1, 1)]:
+        for _ in range(100):
+            xy = rng.uniform(-25.0, 25.0, size=(2, *shape))
+            np.testing.assert_array_equal(batch(xy), _one_by_one(feats, xy[0], xy[1], None))
+
+
 @pytest.mark.parametrize("which", ["mixed", "heightmap", "random-2", "random-9"])
 def test_every_hill_at_once_is_the_sum_one_by_one_bit_for_bit(which: str, tmp_path: Path) -> None:
     if which == "mixed":

@@ -428,7 +428,9 @@ class AdditiveSum:
         k = len(self.feats)
         if k == 0:
             return np.full(xy.shape[1:], 0.0 if base is None else base)
-        if k == 1 or xy.ndim == 1 or xy[0].size * k > self.MAX_BATCH:  # (0-d: arrays out)
+        # 0-d: arrays out. One point: numpy sums a (k, 1) stack pairwise along axis 0 (a
+        # contiguous reduction), not front to back as the hills one by one.
+        if k == 1 or xy.ndim == 1 or xy[0].size == 1 or xy[0].size * k > self.MAX_BATCH:
             return self._one_by_one(xy, base)
         p = self._params(xy.ndim - 1)
         rnd = self._round(xy, p) if self._rnd.shape[0] else xy
