@@ -144,6 +144,18 @@ def test_unwritable_output_directory(tmp_path: Path, capsys: pytest.CaptureFixtu
     assert f"cannot write output directory {blocker / 'sub'}" in err
 
 
+def test_resuming_another_version_s_results_is_refused(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    old = [f for f in RECORD_FIELDS if f != "steep_clearance_min_m"]
+    csv_path = tmp_path / "results.csv"
+    csv_path.write_text(",".join(old) + "\n", encoding="utf-8")
+    code, err = _run_cli(["--seeds", "0", "--resume", "--out", str(tmp_path)], capsys)
+    assert code == 2 and err.count("\n") == 1
+    assert f"cannot resume {csv_path}" in err and "Traceback" not in err
+    assert csv_path.read_text(encoding="utf-8") == ",".join(old) + "\n"  # left as it was
+
+
 def test_bad_layout_file(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     bad = tmp_path / "bad.yaml"
     bad.write_text("- {id: 0, role: obstacle, group: Q, orientation: NONE}\n", encoding="utf-8")

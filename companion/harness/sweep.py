@@ -174,6 +174,7 @@ def run_task(task: Task) -> dict[str, Any]:
             filt = _HeldFaults(FAULTS[task.fault], sc.sensor_table(), task.seed)
         result = run(sc, world, sensor_filter=filt, stall_stop_s=STALL_WINDOW_S)
         m = metrics_mod.for_run(sc, world, result)
+        steep = _steep_clearance(sc, result.trace, sc.planner.d_min_m)
     except Exception as exc:  # a crash is a finding, reported in the record
         rec.update(outcome="error", error=f"{type(exc).__name__}: {exc}"[:300])
         rec["wall_time_s"] = round(time.perf_counter() - wall0, 3)
@@ -203,7 +204,7 @@ def run_task(task: Task) -> dict[str, Any]:
         collision=m["collisions"] > 0,
         collision_cycles=int(m["collisions"]),
         clearance_min_m=round(clearance, 4),
-        steep_clearance_min_m=_blank_nan(_steep_clearance(sc, tr, d_min)),
+        steep_clearance_min_m=_blank_nan(steep),
         height_err_p50_m=round(_pct(h_err[away], 50), 4),
         height_err_p95_m=round(_pct(h_err[away], 95), 4),
         height_err_max_m=round(float(h_err[away].max()) if away.any() else math.nan, 4),
@@ -448,8 +449,16 @@ def write_scenario_file(task: Task, path: Path, note: str = "") -> None:
 
 
 def _read_done(csv_path: Path) -> list[dict[str, str]]:
+    """The rows of a sweep's results.csv to resume; SweepError if its columns are not this
+    version's (rows appended under another header would be read back shifted)."""
     with csv_path.open(newline="", encoding="utf-8") as fh:
-        rows = list(csv.DictReader(fh))
+        reader = csv.DictReader(fh)
+        rows = list(reader)
+        header = tuple(reader.fieldnames or ())
+    if header and header != RECORD_FIELDS:
+        raise SweepError(
+            f"cannot resume {csv_path}: its columns are another version's; use a new --out"
+        )
     return [r for r in rows if all(k in r for k in KEY_FIELDS)]
 
 
@@ -549,7 +558,7 @@ def summarize(rows: Sequence[dict[str, Any]], d_min_m: float) -> str:
         clr = np.array([_num(r["clearance_min_m"]) for r in rs])
         clr = clr[np.isfinite(clr)]
         below = int(np.sum(clr < d_min_m))
-        steep = sum(math.isfinite(_num(r["steep_clearance_min_m"])) for r in rs)
+        steep = sum(math.isfinite(_num(r.get("steep_clearance_min_m"))) for r in rs)
         c = "/".join(f"{np.percentile(clr, q):.2f}" for q in (0, 1, 5, 50)) if len(clr) else "-"
 
         def worst(col: str, fmt: str = ".3f", rs: list[dict[str, Any]] = rs) -> str:
