@@ -200,20 +200,15 @@ class Raster:
         ys = ry0 + offs[None, None, :, None] - py  # (by, bx, B, 1)
         dz = np.maximum(pz - self.zb[w].astype(np.float64), 0.0)
         d2 = xs * xs + ys * ys + dz**2
-        if d2.size == 0:
+        nearest = _nearest(d2, xs, ys)
+        if nearest is None:
             return NO_HIT
-        k = int(np.argmin(d2))
-        best = float(d2.flat[k])
-        if not math.isfinite(best):
-            return NO_HIT
+        best, qx, qy = nearest
         # _search keeps the blocks whose bound is within ub2 (<= ub^2 and <= this sample's
         # block's own bound): this sample is among them if it is within ub^2.
         if not best <= ub * ub:
             return None
-        kby, kbx, ky, kx = np.unravel_index(k, d2.shape)
-        return Hit(
-            math.sqrt(best), float(xs[kby, kbx, 0, kx]) + px, float(ys[kby, kbx, ky, 0]) + py
-        )
+        return Hit(math.sqrt(best), qx + px, qy + py)
 
     def search_all(self, px: float, py: float, pz: float, ub: float) -> Hit:
         """`_search` over every block that holds solid."""
@@ -246,14 +241,29 @@ class Raster:
         xs = rx0[keep][:, None, None] + self.offs[None, None, :] - px
         ys = ry0[keep][:, None, None] + self.offs[None, :, None] - py
         d2 = xs * xs + ys * ys + np.maximum(pz - zb[keep].astype(np.float64), 0.0) ** 2
-        if d2.size == 0:
+        nearest = _nearest(d2, xs, ys)
+        if nearest is None:
             return NO_HIT
-        k = int(np.argmin(d2))
-        best = float(d2.flat[k])
-        if not math.isfinite(best):
-            return NO_HIT
-        kb, ky, kx = np.unravel_index(k, d2.shape)
-        return Hit(math.sqrt(best), float(xs[kb, 0, kx]) + px, float(ys[kb, ky, 0]) + py)
+        best, qx, qy = nearest
+        return Hit(math.sqrt(best), qx + px, qy + py)
+
+
+def _nearest(
+    d2: NDArray[np.float64], xs: NDArray[np.float64], ys: NDArray[np.float64]
+) -> tuple[float, float, float] | None:
+    """The least of the squared distances d2 (the first of equals) and its sample's x and y
+    offsets (xs, ys broadcast to d2's shape); None if there is none or it is not finite."""
+    if d2.size == 0:
+        return None
+    k = int(np.argmin(d2))
+    best = float(d2.flat[k])
+    if not math.isfinite(best):
+        return None
+    return (
+        best,
+        float(np.broadcast_to(xs, d2.shape).flat[k]),
+        float(np.broadcast_to(ys, d2.shape).flat[k]),
+    )
 
 
 class Hit(NamedTuple):
