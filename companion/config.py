@@ -506,9 +506,28 @@ def check_config(path: Path, out: TextIO | None = None, connection: str | None =
         f"link {cfg.link.spec})",
         file=out if out is not None else sys.stdout,
     )
+    print(
+        f"{path}: sensor layout: {layout_summary(cfg)}", file=out if out is not None else sys.stdout
+    )
     for warning in link_warnings(cfg.link.spec):
         print(f"{path}: warning: link.connection: {warning}", file=stream)
     return 0
+
+
+def layout_summary(cfg: ServiceConfig) -> str:
+    """What the sensor layout can see, for a person (`companion.planner.sight`): how far
+    ahead it flags a wall as steep at H_d, and where ahead no obstacle sensor looks level."""
+    from companion.planner.sight import describe_level_gaps, wall_flag_distance_m
+
+    params = cfg.planner.to_params()
+    table = cfg.sensor_table()
+    flag = wall_flag_distance_m(table, params.h_d_m, params.phi_max_rad)
+    ahead = (
+        f"flags a wall ahead as steep {flag:.1f} m out"
+        if flag > 0.0
+        else ("never flags a wall ahead as steep")
+    )
+    return f"{ahead}; {describe_level_gaps(table)}"
 
 
 def link_warnings(spec: LinkSpec) -> list[str]:
@@ -598,6 +617,7 @@ __all__ = [
     "StreamsConfig",
     "check_config",
     "format_errors",
+    "layout_summary",
     "load_config",
     "parse_config",
     "planner_with",

@@ -70,6 +70,15 @@ def test_shipped_configs_are_valid(name: str) -> None:
     out = io.StringIO()
     assert check_config(CONFIGS / f"{name}.yaml", out) == 0
     assert "OK" in out.getvalue()
+    assert "sensor layout: flags a wall ahead as steep" in out.getvalue()
+
+
+def test_check_config_says_where_the_layout_does_not_look_level() -> None:
+    """The paper's layout (the default config's) has level beams only ahead and abeam."""
+    out = io.StringIO()
+    assert check_config(CONFIGS / "default.yaml", out) == 0
+    line = out.getvalue().splitlines()[1]
+    assert "the widest 90 deg (90 deg left to the nose)" in line
 
 
 def test_minimal_config_takes_defaults() -> None:

@@ -1,4 +1,5 @@
-"""sight.py: how far ahead a layout flags a wall, and the speed that can stop within it."""
+"""sight.py: how far ahead a layout flags a wall, the speed that can stop within it, and
+where ahead no obstacle sensor looks level."""
 
 import math
 from pathlib import Path
@@ -7,7 +8,19 @@ import numpy as np
 import pytest
 import yaml
 
-from companion.planner.sight import layout_speed_limit_mps, wall_flag_distance_m
+from companion.planner.sensors import (
+    Group,
+    Role,
+    SensorSpec,
+    SensorTable,
+    boresight_from_rpy_frd,
+)
+from companion.planner.sight import (
+    describe_level_gaps,
+    layout_speed_limit_mps,
+    level_gaps_deg,
+    wall_flag_distance_m,
+)
 from companion.tuning import SensorConfig, sensor_table
 
 CONFIG = Path(__file__).parent.parent / "config/sensors"
@@ -97,3 +110,61 @@ def test_the_vehicle_ahead_of_x_d_lowers_the_layout_limit() -> None:
     limit = layout_speed_limit_mps(flag, 2.3, 1.0, 0.05, 0.4, allowance_m=0.6)
     assert max(speeds) == pytest.approx(limit, rel=1e-6)
     assert limit < layout_speed_limit_mps(flag, 2.3, 1.0, 0.05, 0.4)
+
+
+def test_the_paper_layout_looks_level_only_ahead_and_abeam() -> None:
+    """Level beams at -90, 0 and 90 degrees; the three up-tilted beams do not count."""
+    assert level_gaps_deg(table("paper-11.yaml")) == [(-90.0, 0.0), (0.0, 90.0)]
+
+
+def test_level_beams_30_degrees_apart_leave_30_degree_gaps() -> None:
+    gaps = level_gaps_deg(table("horizontal-7.yaml"))
+    assert len(gaps) == 6
+    assert all(b - a == pytest.approx(30.0) for a, b in gaps)
+    assert sorted(gaps)[0] == pytest.approx((-90.0, -60.0))
+
+
+def test_sectors_that_touch_cover_the_half_ahead() -> None:
+    layout = table("ring-8.yaml")
+    assert level_gaps_deg(layout) == []
+    assert describe_level_gaps(layout) == "level obstacle sensors cover the half ahead"
+
+
+def _layout(*sensors: tuple[float, float, float]) -> SensorTable:
+    """Obstacle sensors (bearing deg right of the nose, elevation deg up, fov deg) and the
+    forward and back surface sensors every table needs."""
+    specs = [
+        SensorSpec.from_frd(
+            i,
+            Role.OBSTACLE,
+            Group.FORWARD,
+            boresight_from_rpy_frd(0.0, math.radians(el), math.radians(b)),
+            0.2,
+            12.0,
+            fov_rad=math.radians(fov),
+        )
+        for i, (b, el, fov) in enumerate(sensors)
+    ]
+    n = len(specs)
+    for k, (group, yaw) in enumerate(((Group.SURFACE_FORWARD, 0.0), (Group.SURFACE_BACK, 180.0))):
+        down = boresight_from_rpy_frd(0.0, math.radians(-45.0), math.radians(yaw))
+        specs.append(SensorSpec.from_frd(n + k, Role.SURFACE, group, down, 0.2, 10.0))
+    return SensorTable(specs)
+
+
+def test_gaps_count_sectors_widths_and_leave_out_tilted_sensors() -> None:
+    """A 100-degree sector on the nose, level beams 70 degrees out each side, and a beam 80
+    degrees right but 20 degrees up (not level): gaps 50-70 and 70-90 on each side, all 20
+    degrees wide, so from the left."""
+    layout = _layout((0.0, 0.0, 100.0), (-70.0, 0.0, 0.0), (70.0, 0.0, 0.0), (80.0, 20.0, 0.0))
+    gaps = level_gaps_deg(layout)
+    assert gaps == [(-90.0, -70.0), (-70.0, -50.0), (50.0, 70.0), (70.0, 90.0)]
+    line = describe_level_gaps(layout)
+    assert line.startswith("4 bearing gap(s) ahead without a level obstacle sensor, the widest")
+    assert "the widest 20 deg (90 deg left to 70 deg left)" in line
+    # A solid between two rays 20 degrees apart meets one within w / (2 sin 10 deg).
+    assert f"{1.0 / (2.0 * math.sin(math.radians(10.0))):.1f} m per metre" in line
+
+
+def test_a_layout_with_no_level_sensor_has_one_gap_across_the_half_ahead() -> None:
+    assert level_gaps_deg(_layout((0.0, 30.0, 0.0))) == [(-90.0, 90.0)]

@@ -11,7 +11,12 @@ stop before it comes within the re-plan distance of a wall first flagged there, 
 the reaction allowance of the stop (`PlannerParams.reaction_time_s`): what the sensors can
 confirm must cover the reaction distance as well as the braking distance.
 
-All lengths in metres, angles in radians, body FLU with the vehicle level.
+`level_gaps_deg` says where a layout has no obstacle sensor looking level ahead: a solid
+approached from such a bearing is seen only when a surface sensor reaches it or a ray at the
+gap's edge meets it, whatever the speed.
+
+All lengths in metres, angles in radians (degrees where a name says so), body FLU with the
+vehicle level.
 """
 
 from __future__ import annotations
@@ -23,6 +28,8 @@ import numpy as np
 from companion.planner.sensors import Group, Role, SensorTable
 
 _AHEAD_COS = math.cos(math.radians(35.0))
+_LEVEL_TOLERANCE_RAD = math.radians(10.0)
+"""Obstacle sensors whose boresight is within this of the horizontal look at flight height."""
 """Obstacle sensors within this angle of the nose (horizontally) look where the vehicle goes."""
 
 
@@ -80,3 +87,60 @@ def layout_speed_limit_mps(
     lag = dt_s + 2.0 * max(reaction_s, 0.0)
     # v^2 / (2a) + v lag - room = 0
     return -a * lag + math.sqrt((a * lag) ** 2 + 2.0 * a * room)
+
+
+def level_gaps_deg(sensors: SensorTable) -> list[tuple[float, float]]:
+    """Bearing intervals of the half ahead (degrees, body frame, clockwise from the nose as
+    MAVLink's yaw: -90 left to 90 right) that no obstacle sensor looking level covers (its
+    boresight within _LEVEL_TOLERANCE_RAD of the horizontal; a beam covers its bearing, a
+    sector its field of view), widest first. Empty when the level sensors cover the half."""
+    covered: list[tuple[float, float]] = []
+    for spec in sensors.specs:
+        u = spec.boresight_flu
+        horizontal = math.hypot(float(u[0]), float(u[1]))
+        if spec.role is not Role.OBSTACLE or horizontal < 1e-9:
+            continue
+        if abs(math.atan2(float(u[2]), horizontal)) > _LEVEL_TOLERANCE_RAD:
+            continue
+        bearing = -math.degrees(math.atan2(float(u[1]), float(u[0])))
+        half = 0.5 * math.degrees(spec.fov_rad)
+        covered.append((bearing - half, bearing + half))
+    gaps: list[tuple[float, float]] = []
+    edge = -90.0
+    for lo, hi in sorted(covered):
+        if lo > edge:
+            gaps.append((edge, min(lo, 90.0)))
+        edge = max(edge, hi)
+        if edge >= 90.0:
+            break
+    if edge < 90.0:
+        gaps.append((edge, 90.0))
+    # Rounded to a micro-degree, so that equal gaps are equal and order by bearing (+ 0.0:
+    # no -0.0).
+    gaps = [(round(a, 6) + 0.0, round(b, 6) + 0.0) for a, b in gaps if b - a > 1e-6]
+    return sorted(gaps, key=lambda g: (g[0] - g[1], g[0]))
+
+
+def describe_level_gaps(sensors: SensorTable) -> str:
+    """One line for a person: the widest bearing gap ahead without a level obstacle sensor
+    (`level_gaps_deg`) and what it means, or that there is none."""
+    gaps = level_gaps_deg(sensors)
+    if not gaps:
+        return "level obstacle sensors cover the half ahead"
+    lo, hi = gaps[0]
+    widest = hi - lo
+    # A solid of width w between two rays `widest` apart meets one within w / (2 sin(gap/2)).
+    reach = 1.0 / (2.0 * math.sin(math.radians(widest) / 2.0))
+    return (
+        f"{len(gaps)} bearing gap(s) ahead without a level obstacle sensor, the widest "
+        f"{widest:.0f} deg ({_side(lo)} to {_side(hi)}): a solid in a gap meets a level ray "
+        f"only within {reach:.1f} m per metre of its width"
+    )
+
+
+def _side(bearing_deg: float) -> str:
+    """'the nose', or 'N deg left/right' for a body bearing (degrees, right positive)."""
+    if abs(bearing_deg) < 0.5:
+        return "the nose"
+    side = "right" if bearing_deg > 0.0 else "left"
+    return f"{abs(bearing_deg):.0f} deg {side}"

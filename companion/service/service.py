@@ -32,7 +32,7 @@ import math
 from collections.abc import Callable, Coroutine
 from typing import Any
 
-from companion.config import ServiceConfig
+from companion.config import ServiceConfig, layout_summary
 from companion.planner.types import VehicleState
 from companion.service.autopilot import AutopilotFinder, AutopilotInfo
 from companion.service.clock import Clock, MonotonicClock, SimClock
@@ -266,6 +266,7 @@ class Service:
             "simulator" if self.sim_time else "monotonic",
             self.cfg.control.rate_hz,
         )
+        log.info("sensor layout: %s", layout_summary(self.cfg))
         if self.flight_log is not None:
             self.flight_log.header(self._log_header())
         self._spawn(self._heartbeat_loop(), "heartbeat")
