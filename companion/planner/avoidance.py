@@ -141,11 +141,9 @@ def min_distance_to(
     if len(points) > _FEW_POINTS:
         arr = np.array(points, dtype=np.float64)
         return min_distance(samples_xy, arr[:, :2], arr[:, 2])
-    if not points:
-        return np.full(len(samples_xy), np.inf)
+    out = np.full(len(samples_xy), np.inf)
     sx = samples_xy[:, 0]
     sy = samples_xy[:, 1]
-    out: FloatArray | None = None
     for x, y, e in points:
         dx = sx - x
         dy = sy - y
@@ -154,8 +152,7 @@ def min_distance_to(
         np.add(dx, dy, out=dx)
         np.sqrt(dx, out=dx)
         np.subtract(dx, e, out=dx)
-        out = dx if out is None else np.minimum(out, dx, out=out)
-    assert out is not None
+        np.minimum(out, dx, out=out)
     return out
 
 
