@@ -37,8 +37,9 @@ from companion.planner.types import BoolArray, FloatArray
 
 _INITIAL_SLOTS = 64
 _LOG_ENTRIES = 512
-"""The change log keeps about this many entries (one per slot touched by a change); a
-caller further behind than that is told to derive afresh (`changes_since` -> None)."""
+"""The change log keeps at most about this many entries (one per slot touched by a change),
+at least half as many; a caller further behind is told to derive afresh (`changes_since`
+-> None)."""
 
 
 class MemoryChanges(NamedTuple):
@@ -201,10 +202,10 @@ class ObstacleMemory:
         self._infl = None
         self._slots = None
         self.version += 1
-        extra = len(self._log_slot) - _LOG_ENTRIES
-        if extra > 0:
-            # Keep whole versions only: those after the newest version an entry is cut from.
-            floor = self._log_version[extra - 1] + 1
+        if len(self._log_slot) > _LOG_ENTRIES:
+            # Down to about half at once (not a few entries every change); whole versions
+            # only: those after the newest version an entry is cut from.
+            floor = self._log_version[len(self._log_slot) - _LOG_ENTRIES // 2 - 1] + 1
             cut = bisect.bisect_left(self._log_version, floor)
             for log in (
                 self._log_version,
