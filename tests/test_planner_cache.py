@@ -91,7 +91,7 @@ def test_chord_steepness_is_its_array_form_bit_for_bit() -> None:
 def test_min_distance_to_is_min_distance_bit_for_bit() -> None:
     rng = np.random.default_rng(2)
     samples = rng.uniform(-20.0, 20.0, (57, 2))
-    for k in (0, 1, 2, 5, 8, 9, 30):  # one at a time up to 8, then the array form
+    for k in (0, 1, 2, 3, 4, 9, 30):  # one at a time up to 3, then the array form
         pts = rng.uniform(-20.0, 20.0, (k, 2))
         infl = rng.choice([0.0, 0.25, 0.7], size=k)
         points = [(x, y, e) for (x, y), e in zip(pts.tolist(), infl.tolist(), strict=True)]

@@ -126,7 +126,7 @@ def min_distance_within(
     return min_distance(samples_xy, obstacles_xy[inside], infl)
 
 
-_FEW_POINTS = 8
+_FEW_POINTS = 3
 """`min_distance_to` measures up to this many points one at a time."""
 _BOX_SLACK_M = 1e-6
 """Widens `within_reach`'s box far beyond the rounding of the distances compared."""

@@ -65,7 +65,7 @@ class ObstacleMemory:
         self.version = 0
         self.generation = 0
         self._cells: dict[tuple[int, int], int] = {}  # grid cell -> slot, oldest first
-        self._xyz = np.empty((_INITIAL_SLOTS, 3))
+        self._xyz = np.full((_INITIAL_SLOTS, 3), np.inf)  # inf: a free slot
         self._cycle = np.zeros(_INITIAL_SLOTS, dtype=np.int64)
         self._inflation = np.zeros(_INITIAL_SLOTS)
         self._slope = np.full(_INITIAL_SLOTS, np.nan)  # the steepest slope measured, rad
@@ -97,7 +97,7 @@ class ObstacleMemory:
         """A free row of the point array, growing it when full."""
         if not self._free:
             old = len(self._xyz)
-            self._xyz = np.concatenate([self._xyz, np.empty((old, 3))])
+            self._xyz = np.concatenate([self._xyz, np.full((old, 3), np.inf)])
             self._cycle = np.concatenate([self._cycle, np.zeros(old, dtype=np.int64)])
             self._inflation = np.concatenate([self._inflation, np.zeros(old)])
             self._slope = np.concatenate([self._slope, np.full(old, np.nan)])
@@ -195,6 +195,7 @@ class ObstacleMemory:
         self._log_y.extend(self._xyz[idx, 1].tolist())
         self._log_inflation.extend(self._inflation[idx].tolist())
         self._used[idx] = False
+        self._xyz[idx] = np.inf
         self._free.extend(slots)
 
     def _changed(self) -> None:
@@ -378,6 +379,12 @@ class ObstacleMemory:
         self._changed()
         self.generation += 1
         return len(gone)
+
+    def slot_points(self) -> tuple[FloatArray, FloatArray]:
+        """Every slot's x, y (m, 2) metres and inflation (m,), in no useful order: the stored
+        points, and +inf for the free slots (whose distance from anything is inf), without
+        gathering them. Read-only views, valid until the next change."""
+        return self._xyz[:, :2], self._inflation
 
     def points_xy(self) -> FloatArray:
         """Remembered points, (k, 2) x, y metres, oldest first."""

@@ -91,9 +91,12 @@ correction accepted while moving in the project's scenarios and in the random-wo
 (at most 27 units seen), so that the bound changes no decision made on the move; what it
 spreads over cycles are the searches at rest and the dead-end retreat (up to 9 full
 searches, 50-150 ms in one cycle before)."""
-_CLEARANCE_EXTRA_M = 2.5
+_CLEARANCE_EXTRA_M = 10.0
 """The look-ahead clearances are measured this much beyond the look-ahead at once, metres,
-and sliced while the memory and the path do not change (`Planner._clearance`)."""
+sliced while the path does not change and brought up to date as the memory changes
+(`Planner._clearance`): X_d covers this much before they are measured afresh. Longer makes
+that rarer (at 2.5 m it was about 1% of the cycles on the move), for a few more samples
+in each update."""
 _NO_POINTS = np.empty((0, 3))
 _NO_INFLATION = np.empty(0)
 _NO_POINTS.setflags(write=False)
@@ -819,9 +822,7 @@ class Planner:
                 points, cached.values, cutoff, box, changes.removed, changes.added
             )
             if len(stale):  # (a few samples: all points, no box to cut them down)
-                values[stale] = min_distance(
-                    points[stale], memory.points_xy(), memory.inflation_m()
-                )
+                values[stale] = min_distance(points[stale], *memory.slot_points())
             if values is cached.values:
                 cached = cached._replace(version=memory.version, box=box)
             else:
