@@ -82,10 +82,14 @@ def test_oldest_go_first_beyond_max_points_and_near_filters_by_radius() -> None:
     assert infl.tolist() == [8.0, 9.0, 10.0, 11.0, 12.0]
 
 
+def _contents_of(xy: np.ndarray, inflation: np.ndarray) -> dict[tuple[float, float], float]:
+    """Points (k, 2) and inflation (k,) as {(x, y): inflation}, exact floats."""
+    return {(x, y): e for (x, y), e in zip(xy.tolist(), inflation.tolist(), strict=True)}
+
+
 def _contents(mem: ObstacleMemory) -> dict[tuple[float, float], float]:
-    """The stored points as {(x, y): inflation}, exact floats."""
-    xy = mem.points_xy().tolist()
-    return {(x, y): e for (x, y), e in zip(xy, mem.inflation_m().tolist(), strict=True)}
+    """The stored points as {(x, y): inflation}."""
+    return _contents_of(mem.points_xy(), mem.inflation_m())
 
 
 def _random_change(mem: ObstacleMemory, rng: np.random.Generator, cycle: int) -> None:
@@ -126,6 +130,10 @@ def test_changes_since_lead_from_each_earlier_version_to_the_points_now() -> Non
         _random_change(mem, rng, cycle)
         now = _contents(mem)
         history[mem.version] = now
+        slot_xy, slot_inflation = mem.slot_points()  # the stored points, inf elsewhere
+        stored = np.isfinite(slot_xy[:, 0])
+        assert np.all(np.isinf(slot_xy[~stored]))
+        assert _contents_of(slot_xy[stored], slot_inflation[stored]) == now
         versions = sorted(history)
         for version in versions[-6:] + versions[:-6:15]:  # the recent ones and a few older
             then = history[version]
