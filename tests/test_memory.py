@@ -80,3 +80,80 @@ def test_oldest_go_first_beyond_max_points_and_near_filters_by_radius() -> None:
     xy, infl = mem.near_with_inflation(np.array([10.0, 0.0]), 2.0)
     assert xy[:, 0].tolist() == [8.0, 9.0, 10.0, 11.0, 12.0]
     assert infl.tolist() == [8.0, 9.0, 10.0, 11.0, 12.0]
+
+
+def _contents_of(xy: np.ndarray, inflation: np.ndarray) -> dict[tuple[float, float], float]:
+    """Points (k, 2) and inflation (k,) as {(x, y): inflation}, exact floats."""
+    return {(x, y): e for (x, y), e in zip(xy.tolist(), inflation.tolist(), strict=True)}
+
+
+def _contents(mem: ObstacleMemory) -> dict[tuple[float, float], float]:
+    """The stored points as {(x, y): inflation}."""
+    return _contents_of(mem.points_xy(), mem.inflation_m())
+
+
+def _random_change(mem: ObstacleMemory, rng: np.random.Generator, cycle: int) -> None:
+    """One of the memory's changes at random: new cells, re-seen cells (moved within the
+    cell or not, inflation up or down, with or without a slope), forgetting, carving."""
+    kind = int(rng.integers(0, 6))
+    if kind <= 2 or len(mem) == 0:
+        k = int(rng.integers(1, 6))
+        if kind == 0 and len(mem):  # re-seen cells: the same or a nearby position
+            pts = mem.points_xy()[rng.integers(0, len(mem), k)]
+            jitter = rng.choice([0.0, 0.05], size=(k, 1)) * rng.uniform(-1, 1, (k, 2))
+            xy = pts + jitter
+        else:
+            xy = rng.uniform(-12.0, 12.0, (k, 2))
+        xyz = np.column_stack([xy, rng.uniform(0.0, 3.0, k)])
+        infl = rng.choice([0.0, 0.3, 0.6], size=k)
+        slope = np.where(rng.random(k) < 0.5, rng.uniform(0.5, 1.5, k), np.nan)
+        mem.add(xyz, cycle, infl, slope)
+    elif kind == 3:
+        mem.forget_far(rng.uniform(-8.0, 8.0, 2))
+    elif kind == 4:
+        dirs = rng.normal(size=(5, 3))
+        dirs /= np.linalg.norm(dirs, axis=1)[:, None]
+        mem.carve(np.array([*rng.uniform(-5, 5, 2), 1.5]), dirs, np.full(5, 10.0), 0.5)
+    else:
+        mem.add(np.array([[np.nan, 0.0, 0.0]]), cycle)  # a version with nothing stored
+
+
+def test_changes_since_lead_from_each_earlier_version_to_the_points_now() -> None:
+    """Property: for every earlier version still in the log, the points then less
+    `removed`, plus `added`, are the points now; a point in `added` only (not removed)
+    kept its position and its inflation rose. Older versions get None."""
+    rng = np.random.default_rng(5)
+    mem = ObstacleMemory(0.25, 14.0, 48)
+    history: dict[int, dict[tuple[float, float], float]] = {mem.version: _contents(mem)}
+    nones, forgotten = 0, -1
+    for cycle in range(1, 400):
+        _random_change(mem, rng, cycle)
+        now = _contents(mem)
+        history[mem.version] = now
+        slot_xy, slot_inflation = mem.slot_points()  # the stored points, inf elsewhere
+        stored = np.isfinite(slot_xy[:, 0])
+        assert np.all(np.isinf(slot_xy[~stored]))
+        assert _contents_of(slot_xy[stored], slot_inflation[stored]) == now
+        versions = sorted(history)
+        for version in versions[-6:] + versions[:-6:15]:  # the recent ones and a few older
+            then = history[version]
+            changes = mem.changes_since(version)
+            if changes is None:
+                nones += 1
+                assert all(mem.changes_since(v) is None for v in versions if v < version)
+                forgotten = max(forgotten, version)
+                continue
+            rebuilt = dict(then)
+            for x, y, e in changes.removed:
+                assert rebuilt.pop((x, y)) == e  # removed: stored then, as it was
+            for x, y, e in changes.added:
+                assert (x, y) in now and now[(x, y)] == e
+                if (x, y) in rebuilt:
+                    assert e > rebuilt[(x, y)]  # kept in place: only a rise
+                rebuilt[(x, y)] = e
+            assert rebuilt == now
+        history = {v: h for v, h in history.items() if v > forgotten}
+    assert nones > 0, "the log never reached its bound"
+    assert len(history) > 10
+    assert mem.changes_since(mem.version) == ([], [])
+    assert mem.changes_since(mem.version + 1) is None

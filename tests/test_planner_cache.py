@@ -1,6 +1,7 @@
 """The planner's per-cycle shortcuts give the numbers of measuring afresh: the look-ahead's
-clearances kept between cycles (`Planner._clearance`) against `min_distance_within` on the
-cycle's own window, and the steep-point step against the array form it replaced."""
+clearances kept between cycles and brought up to date from the memory's change log
+(`Planner._clearance`) against `min_distance_within` on the cycle's own window, and the
+steep-point step against the array form it replaced."""
 
 from pathlib import Path
 
@@ -9,10 +10,13 @@ import pytest
 
 import companion.planner.planner as planner_mod
 from companion.harness.closed_loop import run
-from companion.planner.avoidance import min_distance_within
+from companion.planner import Planner, PlannerParams, Route
+from companion.planner.avoidance import min_distance, min_distance_to, min_distance_within
 from companion.planner.decision import chord_steepness
 from companion.sim.scenario import load_scenario
 from companion.sim.world import World
+from tests.test_memory import _random_change
+from tests.test_planner import SENSORS
 
 SCENARIO_DIR = Path(__file__).parent.parent / "config" / "scenarios"
 
@@ -82,3 +86,64 @@ def test_chord_steepness_is_its_array_form_bit_for_bit() -> None:
             assert np.array_equal(phi, ref_phi)
             assert np.array_equal(partner, ref_partner)
             assert partner.dtype == np.intp
+
+
+def test_min_distance_to_is_min_distance_bit_for_bit() -> None:
+    rng = np.random.default_rng(2)
+    samples = rng.uniform(-20.0, 20.0, (57, 2))
+    for k in (0, 1, 2, 3, 4, 9, 30):  # one at a time up to 3, then the array form
+        pts = rng.uniform(-20.0, 20.0, (k, 2))
+        infl = rng.choice([0.0, 0.25, 0.7], size=k)
+        points = [(x, y, e) for (x, y), e in zip(pts.tolist(), infl.tolist(), strict=True)]
+        assert np.array_equal(min_distance_to(samples, points), min_distance(samples, pts, infl))
+
+
+def test_updated_clearances_are_those_measured_afresh_through_random_changes(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """Property: the memory goes through random adds, re-sees (moved or not, inflation up
+    or down), forgets, carves and max_points drops; after each, the kept clearances (brought
+    up to date, or measured afresh when the log is too short or the window moved) equal a
+    full measure bit for bit below the cutoff, and the close samples are the same."""
+    route = Route(np.array([[0.0, 0.0], [8.0, 3.0], [16.0, -2.0], [26.0, 1.0]]), 0.0)
+    params = PlannerParams(lookahead_m=12.0)
+    planner = Planner(params, SENSORS, route, np.array([0.0, 0.0, 2.0]))
+    memory = planner._memory = planner_mod.ObstacleMemory(0.25, 14.0, 60)
+    samples = planner_mod._PathSamples.of(route, params.lat_accel_max_mps2, params.v_d_mps)
+    cutoff = planner._clearance_cutoff_m
+    trigger = params.d_min_m + 0.5 * params.clearance_margin_m
+    updates: list[int] = []
+    real_update = planner_mod.min_distance_within_updated
+
+    def counting_update(*args):  # type: ignore[no-untyped-def]
+        values, stale = real_update(*args)
+        updates.append(len(stale))
+        return values, stale
+
+    monkeypatch.setattr(planner_mod, "min_distance_within_updated", counting_update)
+    rng = np.random.default_rng(8)
+    below = 0
+    for cycle in range(1, 600):
+        _random_change(memory, rng, cycle)
+        if len(memory) == 0:
+            continue
+        planner._s = min(cycle * 0.02, 10.0)  # the window moves on now and then
+        ahead = samples.window(planner._s, params.lookahead_m)
+        window, close = planner._clearance(samples, ahead)
+        kept = planner._clearance_cache
+        assert kept is not None
+        reach = slice(kept.start, kept.stop)
+        fresh = min_distance_within(
+            samples.points[reach], memory.points_xy(), cutoff, memory.inflation_m()
+        )
+        exact = (fresh < cutoff) | (kept.values < cutoff)
+        assert np.array_equal(kept.values[exact], fresh[exact])
+        assert np.all(kept.values[~exact] >= cutoff)
+        assert close == (np.flatnonzero(fresh < trigger) + kept.start).tolist()
+        assert np.array_equal(
+            window, kept.values[ahead.start - kept.start : ahead.stop - kept.start]
+        )
+        below += int(exact.sum())
+    assert len(updates) > 200, "the clearances were rarely brought up to date"
+    assert sum(1 for n in updates if n) > 10, "no nearest point was ever removed"
+    assert below > 1000, "the path rarely came near the points"

@@ -32,7 +32,7 @@ from __future__ import annotations
 
 import bisect
 import math
-from collections.abc import Generator
+from collections.abc import Generator, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -41,7 +41,7 @@ from companion.planner.bezier import CubicBezier, segment_through
 from companion.planner.params import PlannerParams
 from companion.planner.path import Path, Polyline, project
 from companion.planner.route import Route
-from companion.planner.types import FloatArray, PathMode, Side
+from companion.planner.types import FloatArray, IntArray, PathMode, Side
 
 SIDE_SWITCH_PENALTY_M = 4.0
 DEAD_END_PENALTY_M = 100.0
@@ -124,6 +124,91 @@ def min_distance_within(
     inside = np.all((obstacles_xy >= lo) & (obstacles_xy <= hi), axis=1)
     infl = inflation_m[inside] if inflation_m is not None else None
     return min_distance(samples_xy, obstacles_xy[inside], infl)
+
+
+_FEW_POINTS = 3
+"""`min_distance_to` measures up to this many points one at a time."""
+_BOX_SLACK_M = 1e-6
+"""Widens `within_reach`'s box far beyond the rounding of the distances compared."""
+
+
+def min_distance_to(
+    samples_xy: FloatArray, points: Sequence[tuple[float, float, float]]
+) -> FloatArray:
+    """`min_distance` from the samples (n, 2) to points given as (x, y, inflation) tuples,
+    metres: the same per-pair expression (so the same numbers), a few points one at a time
+    (numpy reduces a short axis slowly)."""
+    if len(points) > _FEW_POINTS:
+        arr = np.array(points, dtype=np.float64)
+        return min_distance(samples_xy, arr[:, :2], arr[:, 2])
+    out = np.full(len(samples_xy), np.inf)
+    sx = samples_xy[:, 0]
+    sy = samples_xy[:, 1]
+    for x, y, e in points:
+        dx = sx - x
+        dy = sy - y
+        np.multiply(dx, dx, out=dx)
+        np.multiply(dy, dy, out=dy)
+        np.add(dx, dy, out=dx)
+        np.sqrt(dx, out=dx)
+        np.subtract(dx, e, out=dx)
+        np.minimum(out, dx, out=out)
+    return out
+
+
+def within_reach(
+    box: tuple[float, float, float, float],
+    cutoff_m: float,
+    points: Sequence[tuple[float, float, float]],
+) -> list[tuple[float, float, float]]:
+    """The points (x, y, inflation) that may come closer than cutoff_m to some sample in
+    the box (x_lo, y_lo, x_hi, y_hi), metres: those in the box grown by cutoff_m plus their
+    inflation. Every other point's distance less its inflation exceeds cutoff_m at every
+    sample in the box."""
+    x_lo, y_lo, x_hi, y_hi = box
+    out = []
+    for p in points:
+        x, y, e = p
+        g = cutoff_m + e + _BOX_SLACK_M
+        if x_lo - g <= x <= x_hi + g and y_lo - g <= y <= y_hi + g:
+            out.append(p)
+    return out
+
+
+def min_distance_within_updated(
+    samples_xy: FloatArray,
+    values: FloatArray,
+    cutoff_m: float,
+    box: tuple[float, float, float, float],
+    removed: Sequence[tuple[float, float, float]],
+    added: Sequence[tuple[float, float, float]],
+) -> tuple[FloatArray, IntArray]:
+    """`min_distance_within` after the obstacle points changed, from `values`, measured by
+    it (or by this) against the points before: now those less `removed`, plus `added`, as
+    (x, y, inflation) metres. box: the samples' bounding box (x_lo, y_lo, x_hi, y_hi).
+    Returns the new values (`values` itself if no change could reach below cutoff_m), the
+    same numbers below cutoff_m (elsewhere >= cutoff_m), except at the returned sample
+    indices: there a removed point was the nearest, and the caller must measure against
+    every point afresh.
+
+    A sample's value is a minimum over pairs, and a pair's value does not depend on the
+    other points: a sample below the cutoff whose removed pairs are all farther than its
+    value keeps that value's point, so its new value is the least of the old one and the
+    added pairs'. A sample at or beyond the cutoff had no point nearer, nor has it now but
+    among the added ones."""
+    removed = within_reach(box, cutoff_m, removed)
+    added = within_reach(box, cutoff_m, added)
+    stale = np.empty(0, dtype=np.intp)
+    if removed:
+        near = np.flatnonzero(values < cutoff_m)
+        if len(near):
+            was = values[near]
+            stale = near[min_distance_to(samples_xy[near], removed) <= was]
+    if added:
+        values = np.minimum(values, min_distance_to(samples_xy, added))
+    elif len(stale):
+        values = values.copy()
+    return values, stale
 
 
 def sample_segments(

@@ -19,11 +19,16 @@ cell to its slot and keeps the cells oldest first. Adding or replacing a point w
 row, and the (k, 2) array of points is gathered from the slots in one step when asked for.
 `version` changes whenever the stored points do, so callers can cache what they derive;
 `generation` only when a cell is added or dropped (not when a known cell is seen again).
+A bounded change log (each touched slot with its x, y and inflation before the change)
+lets such a cache catch up from an earlier version with `changes_since` instead of
+deriving everything again.
 """
 
 from __future__ import annotations
 
+import bisect
 import math
+from typing import NamedTuple
 
 import numpy as np
 import numpy.typing as npt
@@ -31,6 +36,23 @@ import numpy.typing as npt
 from companion.planner.types import BoolArray, FloatArray
 
 _INITIAL_SLOTS = 64
+_LOG_ENTRIES = 512
+"""The change log keeps at most about this many entries (one per slot touched by a change),
+at least half as many; a caller further behind is told to derive afresh (`changes_since`
+-> None)."""
+
+
+class MemoryChanges(NamedTuple):
+    """How the stored points changed between two versions, as (x, y, inflation) metres
+    (world ENU): `removed` were stored at the earlier version and are no longer stored as
+    they were (dropped, moved, or their inflation lowered); `added` are stored now and were
+    not stored as they are at the earlier version (new, moved, or their inflation changed).
+    The stored points now are those of the earlier version less `removed`, plus `added`,
+    except that a point whose position stayed and whose inflation rose is in `added` only:
+    its distance less its inflation can only fall."""
+
+    removed: list[tuple[float, float, float]]
+    added: list[tuple[float, float, float]]
 
 
 class ObstacleMemory:
@@ -43,7 +65,7 @@ class ObstacleMemory:
         self.version = 0
         self.generation = 0
         self._cells: dict[tuple[int, int], int] = {}  # grid cell -> slot, oldest first
-        self._xyz = np.empty((_INITIAL_SLOTS, 3))
+        self._xyz = np.full((_INITIAL_SLOTS, 3), np.inf)  # inf: a free slot
         self._cycle = np.zeros(_INITIAL_SLOTS, dtype=np.int64)
         self._inflation = np.zeros(_INITIAL_SLOTS)
         self._slope = np.full(_INITIAL_SLOTS, np.nan)  # the steepest slope measured, rad
@@ -57,6 +79,16 @@ class ObstacleMemory:
         # `slack` from (x, y) no stored point can be farther than radius_m (triangle
         # inequality), so most cycles need no distance at all. Adding a point lowers it.
         self._far_check: tuple[float, float, float] | None = None
+        self._used = np.zeros(_INITIAL_SLOTS, dtype=bool)  # the slot holds a stored point
+        # The change log, one entry per slot touched: the version the change started from,
+        # the slot, and its x, y and inflation before (NaN: it held no point). Versions
+        # from `_log_floor` on are complete in it.
+        self._log_version: list[int] = []
+        self._log_slot: list[int] = []
+        self._log_x: list[float] = []
+        self._log_y: list[float] = []
+        self._log_inflation: list[float] = []
+        self._log_floor = 0
 
     def __len__(self) -> int:
         return len(self._cells)
@@ -65,11 +97,12 @@ class ObstacleMemory:
         """A free row of the point array, growing it when full."""
         if not self._free:
             old = len(self._xyz)
-            self._xyz = np.concatenate([self._xyz, np.empty((old, 3))])
+            self._xyz = np.concatenate([self._xyz, np.full((old, 3), np.inf)])
             self._cycle = np.concatenate([self._cycle, np.zeros(old, dtype=np.int64)])
             self._inflation = np.concatenate([self._inflation, np.zeros(old)])
             self._slope = np.concatenate([self._slope, np.full(old, np.nan)])
             self._slope_inflation = np.concatenate([self._slope_inflation, np.zeros(old)])
+            self._used = np.concatenate([self._used, np.zeros(old, dtype=bool)])
             self._free = list(range(2 * old - 1, old - 1, -1))
         return self._free.pop()
 
@@ -99,6 +132,8 @@ class ObstacleMemory:
             if slope_rad is None
             else np.asarray(slope_rad, dtype=np.float64).reshape(-1).tolist()
         )
+        version = self.version
+        xyz = self._xyz
         for (x, y, z), e, theta in zip(pts.tolist(), inflation, slopes, strict=True):
             if not (math.isfinite(x) and math.isfinite(y) and math.isfinite(z)):
                 continue
@@ -108,9 +143,16 @@ class ObstacleMemory:
             if slot is None:
                 new += 1
                 slot = self._slot()
+                xyz = self._xyz  # (a new slot may have grown the arrays)
                 self._slope[slot] = math.nan
+                self._used[slot] = True
+                self._log(version, slot, math.nan, math.nan, math.nan)
+            else:
+                self._log(
+                    version, slot, xyz.item(slot, 0), xyz.item(slot, 1), self._inflation.item(slot)
+                )
             cells[key] = slot
-            self._xyz[slot] = (x, y, z)
+            xyz[slot] = (x, y, z)
             self._cycle[slot] = cycle
             if math.isfinite(theta):
                 kept = float(self._slope[slot])
@@ -124,7 +166,7 @@ class ObstacleMemory:
                 cx, cy, slack = check
                 self._far_check = (cx, cy, min(slack, self.radius_m - math.hypot(x - cx, y - cy)))
         while len(cells) > self.max_points:
-            self._free.append(cells.pop(next(iter(cells))))
+            self._drop_slots([cells.pop(next(iter(cells)))])
             new += 1
         if new:
             self.generation += 1
@@ -132,11 +174,80 @@ class ObstacleMemory:
             self._changed()
         return new
 
+    def _log(self, version: int, slot: int, x: float, y: float, inflation_m: float) -> None:
+        """A change log entry: `slot` changes from version `version`, from (x, y) with
+        inflation_m (NaN: it held no point)."""
+        self._log_version.append(version)
+        self._log_slot.append(slot)
+        self._log_x.append(x)
+        self._log_y.append(y)
+        self._log_inflation.append(inflation_m)
+
+    def _drop_slots(self, slots: list[int]) -> None:
+        """Free the slots (their cells already removed), logging what they held."""
+        if not slots:
+            return
+        n = len(slots)
+        idx = np.asarray(slots, dtype=np.intp)
+        self._log_version.extend([self.version] * n)
+        self._log_slot.extend(slots)
+        self._log_x.extend(self._xyz[idx, 0].tolist())
+        self._log_y.extend(self._xyz[idx, 1].tolist())
+        self._log_inflation.extend(self._inflation[idx].tolist())
+        self._used[idx] = False
+        self._xyz[idx] = np.inf
+        self._free.extend(slots)
+
     def _changed(self) -> None:
         self._xy = None
         self._infl = None
         self._slots = None
         self.version += 1
+        if len(self._log_slot) > _LOG_ENTRIES:
+            # Down to about half at once (not a few entries every change); whole versions
+            # only: those after the newest version an entry is cut from.
+            floor = self._log_version[len(self._log_slot) - _LOG_ENTRIES // 2 - 1] + 1
+            cut = bisect.bisect_left(self._log_version, floor)
+            for log in (
+                self._log_version,
+                self._log_slot,
+                self._log_x,
+                self._log_y,
+                self._log_inflation,
+            ):
+                del log[:cut]
+            self._log_floor = floor
+
+    def changes_since(self, version: int) -> MemoryChanges | None:
+        """How the stored points changed since `version` (an earlier value of `version`),
+        or None if the log no longer reaches back that far (derive afresh then)."""
+        if version < self._log_floor or version > self.version:
+            return None
+        start = bisect.bisect_left(self._log_version, version)
+        before: dict[int, int] = {}  # slot -> its first entry since `version`
+        for i, slot in enumerate(self._log_slot[start:], start):
+            before.setdefault(slot, i)
+        removed: list[tuple[float, float, float]] = []
+        added: list[tuple[float, float, float]] = []
+        xyz, infl, used = self._xyz, self._inflation, self._used
+        log_x, log_y, log_inflation = self._log_x, self._log_y, self._log_inflation
+        for slot, i in before.items():
+            was = log_inflation[i]
+            now = (xyz.item(slot, 0), xyz.item(slot, 1), infl.item(slot)) if used[slot] else None
+            if was != was:  # (NaN: no point before)
+                if now is not None:
+                    added.append(now)
+            elif now is None:
+                removed.append((log_x[i], log_y[i], was))
+            elif now[0] == log_x[i] and now[1] == log_y[i]:
+                if now[2] < was:
+                    removed.append((log_x[i], log_y[i], was))
+                if now[2] != was:
+                    added.append(now)
+            else:
+                removed.append((log_x[i], log_y[i], was))
+                added.append(now)
+        return MemoryChanges(removed, added)
 
     def _cell_slots(self) -> npt.NDArray[np.intp]:
         """The slot of every cell, oldest first (kept until the points change)."""
@@ -163,8 +274,7 @@ class ObstacleMemory:
         kept = d[~far]
         self._far_check = (x, y, self.radius_m - float(kept.max())) if len(kept) else None
         keys = list(self._cells)
-        for i in np.flatnonzero(far).tolist():
-            self._free.append(self._cells.pop(keys[i]))
+        self._drop_slots([self._cells.pop(keys[i]) for i in np.flatnonzero(far).tolist()])
         self._changed()
         self.generation += 1
         return int(far.sum())
@@ -265,11 +375,16 @@ class ObstacleMemory:
         if len(gone) == 0:
             return 0
         keys = list(self._cells)
-        for i in gone.tolist():
-            self._free.append(self._cells.pop(keys[i]))
+        self._drop_slots([self._cells.pop(keys[i]) for i in gone.tolist()])
         self._changed()
         self.generation += 1
         return len(gone)
+
+    def slot_points(self) -> tuple[FloatArray, FloatArray]:
+        """Every slot's x, y (m, 2) metres and inflation (m,), in no useful order: the stored
+        points, and +inf for the free slots (whose distance from anything is inf), without
+        gathering them. Read-only views, valid until the next change."""
+        return self._xyz[:, :2], self._inflation
 
     def points_xy(self) -> FloatArray:
         """Remembered points, (k, 2) x, y metres, oldest first."""

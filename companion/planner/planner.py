@@ -40,6 +40,7 @@ from companion.planner.avoidance import (
     detour_search,
     min_distance,
     min_distance_within,
+    min_distance_within_updated,
     passed_beside,
 )
 from companion.planner.decision import chord_steepness_rows, decide_rows, steepness, thresholds
@@ -90,9 +91,12 @@ correction accepted while moving in the project's scenarios and in the random-wo
 (at most 27 units seen), so that the bound changes no decision made on the move; what it
 spreads over cycles are the searches at rest and the dead-end retreat (up to 9 full
 searches, 50-150 ms in one cycle before)."""
-_CLEARANCE_EXTRA_M = 2.5
+_CLEARANCE_EXTRA_M = 10.0
 """The look-ahead clearances are measured this much beyond the look-ahead at once, metres,
-and sliced while the memory and the path do not change (`Planner._clearance`)."""
+sliced while the path does not change and brought up to date as the memory changes
+(`Planner._clearance`): X_d covers this much before they are measured afresh. Longer makes
+that rarer (at 2.5 m it was about 1% of the cycles on the move), for a few more samples
+in each update."""
 _NO_POINTS = np.empty((0, 3))
 _NO_INFLATION = np.empty(0)
 _NO_POINTS.setflags(write=False)
@@ -195,6 +199,9 @@ class _ClearanceCache(NamedTuple):
     close: list[int]
     """The samples (indices into the path's samples, ascending) closer than the re-plan
     trigger."""
+    box: tuple[float, float, float, float] | None
+    """The samples' bounding box (x_lo, y_lo, x_hi, y_hi), metres, once an update needed
+    it."""
 
 
 @dataclass(frozen=True, slots=True)
@@ -783,15 +790,45 @@ class Planner:
     def _clearance(self, samples: _PathSamples, ahead: slice) -> tuple[FloatArray, list[int]]:
         """The look-ahead samples' clearance from the remembered points (`_LookAhead`).
 
-        Measured _CLEARANCE_EXTRA_M beyond the look-ahead at once and kept while the memory
-        (`ObstacleMemory.version`) and the path stay the same: X_d moves a few centimetres a
-        cycle, so most cycles slice what an earlier one measured. Below the cutoff the
-        numbers are those of measuring the window alone (the nearest point is among the
-        points considered either way); above it both are >= the cutoff, which every reader
-        treats alike. Also the samples closer than the re-plan trigger (`_ClearanceCache`)."""
+        Measured _CLEARANCE_EXTRA_M beyond the look-ahead at once and kept while the path
+        stays the same: X_d moves a few centimetres a cycle, so most cycles slice what an
+        earlier one measured. When the memory changes (`ObstacleMemory.version`), the kept
+        values are brought up to date from its change log: only the points added or
+        removed since are measured, and the samples whose nearest point was removed
+        against every point (`min_distance_within_updated`). Below the cutoff the numbers
+        are those of measuring the window alone against the memory as it is (the nearest
+        point is among the points considered either way); above it both are >= the cutoff,
+        which every reader treats alike. Also the samples closer than the re-plan trigger
+        (`_ClearanceCache`)."""
         memory = self._memory
         cached = self._clearance_cache
+        changes = None
         if (
+            cached is not None
+            and cached.version != memory.version
+            and cached.samples is samples
+            and cached.start <= ahead.start
+            and ahead.stop <= cached.stop
+        ):
+            changes = memory.changes_since(cached.version)
+        cutoff = self._clearance_cutoff_m
+        if cached is not None and changes is not None:
+            points = samples.points[cached.start : cached.stop]
+            box = cached.box
+            if box is None:
+                lo, hi = points.min(axis=0).tolist(), points.max(axis=0).tolist()
+                box = (lo[0], lo[1], hi[0], hi[1])
+            values, stale = min_distance_within_updated(
+                points, cached.values, cutoff, box, changes.removed, changes.added
+            )
+            if len(stale):  # (a few samples: all points, no box to cut them down)
+                values[stale] = min_distance(points[stale], *memory.slot_points())
+            if values is cached.values:
+                cached = cached._replace(version=memory.version, box=box)
+            else:
+                cached = self._keep_clearance(memory.version, samples, cached.start, values, box)
+            self._clearance_cache = cached
+        elif (
             cached is None
             or cached.version != memory.version
             or cached.samples is not samples
@@ -800,20 +837,27 @@ class Planner:
         ):
             reach = samples.window(self._s, self.params.lookahead_m + _CLEARANCE_EXTRA_M)
             values = min_distance_within(
-                samples.points[reach],
-                memory.points_xy(),
-                self._clearance_cutoff_m,
-                memory.inflation_m(),
+                samples.points[reach], memory.points_xy(), cutoff, memory.inflation_m()
             )
-            params = self.params
-            trigger = params.d_min_m + 0.5 * params.clearance_margin_m
-            close = (np.flatnonzero(values < trigger) + reach.start).tolist()
-            cached = _ClearanceCache(
-                memory.version, samples, reach.start, reach.stop, values, close
-            )
+            cached = self._keep_clearance(memory.version, samples, reach.start, values, None)
             self._clearance_cache = cached
         window = cached.values[ahead.start - cached.start : ahead.stop - cached.start]
         return window, cached.close
+
+    def _keep_clearance(
+        self,
+        version: int,
+        samples: _PathSamples,
+        start: int,
+        values: FloatArray,
+        box: tuple[float, float, float, float] | None,
+    ) -> _ClearanceCache:
+        """The cache entry of the clearances `values` of the samples from `start` on, at
+        memory `version`."""
+        params = self.params
+        trigger = params.d_min_m + 0.5 * params.clearance_margin_m
+        close = [i + start for i in np.flatnonzero(values < trigger).tolist()]
+        return _ClearanceCache(version, samples, start, start + len(values), values, close, box)
 
     def _update_path(
         self, state: VehicleState, ranges: FloatArray, valid: BoolArray, events: list[str]
