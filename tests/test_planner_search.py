@@ -2,6 +2,7 @@
 cycles, a bound per cycle, and the exact rewrites behind its speed (same numbers)."""
 
 import copy
+import itertools
 import math
 
 import numpy as np
@@ -12,7 +13,12 @@ from companion.planner import SEARCH_BUDGET_UNITS, Planner, PlannerParams, Route
 from companion.planner.avoidance import AvoidanceRequest, detour_search, plan_detour
 from companion.planner.bezier import CubicBezier, _real_roots_quadratic
 from companion.planner.decision import chord_steepness
-from companion.planner.retreat import RETREAT_STEPS_M, backwards_track, retreat_search
+from companion.planner.retreat import (
+    RETREAT_STEPS_M,
+    backwards_track,
+    retreat_search,
+    split_at_turns,
+)
 from companion.planner.speed import STOPPED_MPS
 from companion.planner.types import Side
 from tests.test_planner import SENSORS, flat_ranges
@@ -156,6 +162,43 @@ def test_retreat_needs_a_track_and_finds_the_other_side() -> None:
     assert plan.back_length_m == pytest.approx(plan.back_m, abs=0.6)
     turn = plan.detour.path.segments[0].control[0]  # where it stops and turns
     assert turn[1] == 0.0 and 0.0 <= (here[0] - turn[0]) - plan.back_m <= 0.5
+
+
+def test_way_back_stops_where_the_track_doubles_back() -> None:
+    """The vehicle went east along y = 0 to x = 20, turned on the spot and came back west
+    along y = 1 (a way 1 m beside the first, so the track does not unwind). Backing out from
+    x = 17.5 retraces that hairpin: the way back is cut at its two sharp corners, where the
+    vehicle stops and turns, instead of one spline that loops round them at speed."""
+    track = [(float(x), 0.0) for x in np.arange(0.0, 20.01, 0.5)] + [(20.0, 0.5)]
+    track += [(float(x), 1.0) for x in np.arange(20.0, 17.99, -0.5)]
+    here = np.array([17.5, 1.0])
+    along = np.arange(10.0, 23.0, 0.25)
+    pts = np.vstack([wall(23.0, -1.0, 8.0), np.column_stack([along, np.full(len(along), 3.0)])])
+    req = request(pts, start=tuple(here), direction=None)
+    plan, _ = run_to_end(
+        retreat_search(ROUTE, req, PARAMS, backwards_track(here, track), 0.5, Side.LEFT)
+    )
+    assert plan is not None and plan.back_m > 3.0
+    assert len(plan.turns_m) == 2
+    assert all(0.0 < a < b < plan.back_length_m for a, b in itertools.pairwise(plan.turns_m))
+    # Between the stops the way back bends gently: no loop round a corner.
+    stops = [0.0, *plan.turns_m, plan.back_length_m]
+    for a, b in itertools.pairwise(stops):
+        s = np.linspace(a + 1e-6, b - 1e-6, 50)
+        headings = np.unwrap([plan.path.heading(v) for v in s])
+        assert np.ptp(headings) < math.radians(60.0)
+
+
+def test_split_at_turns_keeps_gentle_bends_whole() -> None:
+    gentle = np.array([[0.0, 0.0], [2.0, 0.0], [3.9, 0.6], [5.6, 1.7]])  # 17 and 15 degrees
+    assert [len(p) for p in split_at_turns(gentle)] == [4]
+    corner = np.array([[0.0, 0.0], [2.0, 0.0], [2.0, 2.0], [0.0, 2.0], [-2.0, 2.0]])
+    pieces = split_at_turns(corner)
+    assert [p.tolist() for p in pieces] == [
+        [[0.0, 0.0], [2.0, 0.0]],
+        [[2.0, 0.0], [2.0, 2.0]],
+        [[2.0, 2.0], [0.0, 2.0], [-2.0, 2.0]],
+    ]
 
 
 def test_real_roots_quadratic_matches_numpy() -> None:

@@ -1148,7 +1148,7 @@ class Planner:
         turn_xy = detour.path.segments[0].control[0]
         self._say_passed_beside(detour.path, turn_xy, detour.rejoin_s, events)
         self._set_path(plan.path, PathMode.RETREAT, detour.side)
-        self._stops = [0.0, plan.back_length_m]
+        self._stops = [0.0, *plan.turns_m, plan.back_length_m]
         self._avoid_side = plan.failed_side
         self._detour_end_s = plan.back_length_m
         rejoin_on_path = (

@@ -9,12 +9,15 @@ Pure functions over the covered track (x, y metres, local ENU); searched in work
 
 from __future__ import annotations
 
+import itertools
+import math
 from collections.abc import Generator, Sequence
 from dataclasses import dataclass
 
 import numpy as np
 
 from companion.planner.avoidance import AvoidanceRequest, Detour, detour_search
+from companion.planner.bezier import CubicBezier
 from companion.planner.params import PlannerParams
 from companion.planner.path import Path
 from companion.planner.route import Route
@@ -24,6 +27,9 @@ RETREAT_STEPS_M = (3.0, 6.0, 9.0, 12.0, 16.0, 20.0, 25.0, 30.0, 40.0)
 """How far back along the covered track a retreat may end, tried nearest first, metres."""
 _KEEP_EVERY_M = 2.0
 """Spacing of the track points the way back passes through, metres."""
+_SHARP_TURN_RAD = math.radians(60.0)
+"""The way back stops and turns on the spot where the track turns more than this at one of
+those points (`split_at_turns`)."""
 
 
 @dataclass(frozen=True, slots=True)
@@ -37,6 +43,9 @@ class RetreatPlan:
     back_length_m: float
     detour: Detour
     failed_side: Side
+    turns_m: tuple[float, ...] = ()
+    """Arc lengths (m, along `path`) of the sharp turns of the way back (`split_at_turns`):
+    the vehicle stops and turns on the spot at each."""
 
 
 def backwards_track(here_xy: FloatArray, track_xy: Sequence[tuple[float, float]]) -> FloatArray:
@@ -85,12 +94,36 @@ def retreat_search(
             keep = np.vstack([keep, target])
         if len(keep) < 2:
             continue
-        back = Route(keep)
+        segments: list[CubicBezier] = []
+        turns: list[float] = []
+        length = 0.0
+        for piece in split_at_turns(keep):
+            if segments:
+                turns.append(length)
+            back = Route(piece)
+            segments += back.segments
+            length += back.length
         return RetreatPlan(
-            path=Path([*back.segments, *detour.path.segments]),
+            path=Path([*segments, *detour.path.segments]),
             back_m=back_m,
-            back_length_m=back.length,
+            back_length_m=length,
             detour=detour,
             failed_side=failed_side,
+            turns_m=tuple(turns),
         )
     return None
+
+
+def split_at_turns(points_xy: FloatArray) -> list[FloatArray]:
+    """The polyline (n, 2) cut at each point where it turns by more than _SHARP_TURN_RAD,
+    each piece (k >= 2, 2) sharing its end with the next one's start. The covered track
+    turns so where the vehicle turned on the spot (it may double back over a few points);
+    one spline through such points would loop round them (a base point's Catmull-Rom
+    tangent is W_i+1 - W_i-1) and turn X_d about at speed."""
+    d = np.diff(points_xy, axis=0)
+    cos_turn = (d[:-1] * d[1:]).sum(axis=1) / np.maximum(
+        np.hypot(*d[:-1].T) * np.hypot(*d[1:].T), 1e-12
+    )
+    sharp = np.flatnonzero(cos_turn < math.cos(_SHARP_TURN_RAD)) + 1
+    bounds = [0, *sharp.tolist(), len(points_xy) - 1]
+    return [points_xy[a : b + 1] for a, b in itertools.pairwise(bounds)]
