@@ -72,6 +72,16 @@ def test_offsets_for_a_side_slope_and_a_crest() -> None:
     assert bend == pytest.approx(0.1 * 2.0**2 / 2)
 
 
+def test_the_lag_is_counted_only_over_the_fits_reach() -> None:
+    """A forward ground point 5 m ahead (a descent): the curvature of a 3 m fit is carried
+    over 3 m, not 5 (its error would grow with the square of the lead)."""
+    crest = GroundFit(0.0, 0.0, (0.0, 0.0, 0.0, -0.05, 0.0, 0.0), 9)
+    _, within = offsets_from_fit(crest, 0.0, 0.0, 0.0, 2.0, 2.5, reach_m=3.0)
+    assert within == pytest.approx(0.1 * 2.5**2 / 2)
+    _, beyond = offsets_from_fit(crest, 0.0, 0.0, 0.0, 2.0, 5.0, reach_m=3.0)
+    assert beyond == pytest.approx(0.1 * 3.0**2 / 2)
+
+
 @pytest.mark.slow
 @pytest.mark.parametrize("name", ["smooth-hill", "crease"])
 def test_shaping_holds_the_height_the_paper_alone_does_not(name: str) -> None:

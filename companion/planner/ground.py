@@ -151,12 +151,22 @@ def _solve6(lhs: FloatArray, rhs: FloatArray) -> FloatArray:
 
 
 def offsets_from_fit(
-    fit: GroundFit, x: float, y: float, yaw_rad: float, h_d_m: float, lead_m: float
+    fit: GroundFit,
+    x: float,
+    y: float,
+    yaw_rad: float,
+    h_d_m: float,
+    lead_m: float,
+    reach_m: float = math.inf,
 ) -> tuple[float, float]:
     """The two heights (metres) eq. (3)'s aim point lacks at world (x, y), the aim's place:
     H_d (sqrt(1 + g_a^2 + g_c^2) - sqrt(1 + g_a^2)) for the slope across the heading (g_a,
-    g_c the fitted slope along and across), and -g'' lead^2 / 2 for the lag over a curved
-    profile (g'' along the heading, lead the aim's distance ahead)."""
+    g_c the fitted slope along and across), and -g'' L^2 / 2 for the lag over a curved
+    profile (g'' along the heading, L the aim's distance ahead, lead_m, counted at most
+    reach_m: the fit's curvature describes the ground within its radius, and carried over a
+    longer lead its error grows with L^2 — on a descent the forward ground point can lie 5 m
+    ahead, where 0.04 1/m of error is 0.5 m of height)."""
+    lead_m = min(lead_m, reach_m)
     gx, gy = fit.gradient(x, y)
     c, s = math.cos(yaw_rad), math.sin(yaw_rad)
     along = gx * c + gy * s

@@ -578,7 +578,9 @@ class Planner:
         if fit is None:
             return x_z
         lead = math.hypot(zx - xd, zy - yd)
-        side, bend = offsets_from_fit(fit, zx, zy, state.yaw_rad, self._h_d, lead)
+        side, bend = offsets_from_fit(
+            fit, zx, zy, state.yaw_rad, self._h_d, lead, reach_m=_GROUND_FIT_RADIUS_M
+        )
         lift = min(max(side + bend, -_GROUND_LIFT_MAX_M), _GROUND_LIFT_MAX_M)
         return zx, zy, zz + lift
 
