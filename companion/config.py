@@ -522,11 +522,10 @@ def layout_summary(cfg: ServiceConfig) -> str:
     params = cfg.planner.to_params()
     table = cfg.sensor_table()
     flag = wall_flag_distance_m(table, params.h_d_m, params.phi_max_rad)
-    ahead = (
-        f"flags a wall ahead as steep {flag:.1f} m out"
-        if flag > 0.0
-        else ("never flags a wall ahead as steep")
-    )
+    if flag > 0.0:
+        ahead = f"flags a wall ahead as steep {flag:.1f} m out"
+    else:
+        ahead = "never flags a wall ahead as steep"
     return f"{ahead}; {describe_level_gaps(table)}"
 
 

@@ -28,9 +28,9 @@ import numpy as np
 from companion.planner.sensors import Group, Role, SensorTable
 
 _AHEAD_COS = math.cos(math.radians(35.0))
+"""Obstacle sensors within this angle of the nose (horizontally) look where the vehicle goes."""
 _LEVEL_TOLERANCE_RAD = math.radians(10.0)
 """Obstacle sensors whose boresight is within this of the horizontal look at flight height."""
-"""Obstacle sensors within this angle of the nose (horizontally) look where the vehicle goes."""
 
 
 def wall_flag_distance_m(sensors: SensorTable, h_d_m: float, threshold_rad: float) -> float:
