@@ -79,7 +79,6 @@ class ObstacleMemory:
         # `slack` from (x, y) no stored point can be farther than radius_m (triangle
         # inequality), so most cycles need no distance at all. Adding a point lowers it.
         self._far_check: tuple[float, float, float] | None = None
-        self._used = np.zeros(_INITIAL_SLOTS, dtype=bool)  # the slot holds a stored point
         # The change log, one entry per slot touched: the version the change started from,
         # the slot, and its x, y and inflation before (NaN: it held no point). Versions
         # from `_log_floor` on are complete in it.
@@ -102,7 +101,6 @@ class ObstacleMemory:
             self._inflation = np.concatenate([self._inflation, np.zeros(old)])
             self._slope = np.concatenate([self._slope, np.full(old, np.nan)])
             self._slope_inflation = np.concatenate([self._slope_inflation, np.zeros(old)])
-            self._used = np.concatenate([self._used, np.zeros(old, dtype=bool)])
             self._free = list(range(2 * old - 1, old - 1, -1))
         return self._free.pop()
 
@@ -145,7 +143,6 @@ class ObstacleMemory:
                 slot = self._slot()
                 xyz = self._xyz  # (a new slot may have grown the arrays)
                 self._slope[slot] = math.nan
-                self._used[slot] = True
                 self._log(version, slot, math.nan, math.nan, math.nan)
             else:
                 self._log(
@@ -194,7 +191,6 @@ class ObstacleMemory:
         self._log_x.extend(self._xyz[idx, 0].tolist())
         self._log_y.extend(self._xyz[idx, 1].tolist())
         self._log_inflation.extend(self._inflation[idx].tolist())
-        self._used[idx] = False
         self._xyz[idx] = np.inf
         self._free.extend(slots)
 
@@ -229,11 +225,12 @@ class ObstacleMemory:
             before.setdefault(slot, i)
         removed: list[tuple[float, float, float]] = []
         added: list[tuple[float, float, float]] = []
-        xyz, infl, used = self._xyz, self._inflation, self._used
+        xyz, infl = self._xyz, self._inflation
         log_x, log_y, log_inflation = self._log_x, self._log_y, self._log_inflation
         for slot, i in before.items():
             was = log_inflation[i]
-            now = (xyz.item(slot, 0), xyz.item(slot, 1), infl.item(slot)) if used[slot] else None
+            x = xyz.item(slot, 0)  # (inf in a free slot)
+            now = (x, xyz.item(slot, 1), infl.item(slot)) if x != math.inf else None
             if was != was:  # (NaN: no point before)
                 if now is not None:
                     added.append(now)
