@@ -75,8 +75,7 @@ async def download_mission(
             fut = conn.expect(types, pred)  # type: ignore[arg-type]
             try:
                 conn.send(msg)
-                async with asyncio.timeout(timeout_s):  # (keeps a cancel: see commands.py)
-                    return await fut
+                return await asyncio.wait_for(fut, timeout_s)
             except TimeoutError:
                 continue
             finally:
