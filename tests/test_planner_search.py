@@ -10,7 +10,12 @@ import pytest
 
 import companion.planner.planner as planner_mod
 from companion.planner import SEARCH_BUDGET_UNITS, Planner, PlannerParams, Route, VehicleState
-from companion.planner.avoidance import AvoidanceRequest, detour_search, plan_detour
+from companion.planner.avoidance import (
+    AvoidanceRequest,
+    SearchFrame,
+    detour_search,
+    plan_detour,
+)
 from companion.planner.bezier import CubicBezier, _real_roots_quadratic
 from companion.planner.decision import chord_steepness
 from companion.planner.retreat import (
@@ -79,6 +84,39 @@ def test_search_in_units_is_plan_detour(points: np.ndarray) -> None:
             stepped.mode,
             stepped.offset_m,
         )
+
+
+def test_one_frame_shared_by_searches_from_many_starts_changes_no_answer() -> None:
+    """`retreat_search` shares one `SearchFrame` (projections, window, clearance memo, route
+    tails) among its trials from different starts: each answer is the one a search with a
+    frame of its own finds, candidate for candidate."""
+    along = np.arange(10.0, 23.0, 0.25)
+    pts = np.vstack([wall(23.0, -1.0, 8.0), np.column_stack([along, np.full(len(along), 3.0)])])
+    shared = SearchFrame.of(ROUTE, request(pts), PARAMS)
+    found = 0
+    for x, y, direction in [
+        (18.0, 0.0, None),
+        (15.0, 0.5, None),
+        (12.0, -0.5, None),
+        (8.0, 0.0, (1.0, 0.0)),
+        (2.0, 0.0, (1.0, 0.0)),
+    ]:
+        req = request(pts, start=(x, y), direction=direction)
+        alone, units_alone = run_to_end(detour_search(ROUTE, req, PARAMS))
+        with_shared, units_shared = run_to_end(detour_search(ROUTE, req, PARAMS, shared))
+        assert units_alone == units_shared
+        assert (alone is None) == (with_shared is None)
+        if alone is not None:
+            found += 1
+            assert same_path(alone.path, with_shared.path)
+            assert (alone.side, alone.mode, alone.offset_m, alone.cost) == (
+                with_shared.side,
+                with_shared.mode,
+                with_shared.offset_m,
+                with_shared.cost,
+            )
+    assert found >= 2  # the comparison saw accepted corrections, not only failures
+    assert shared.tails  # and the shared route tails were filled in and used again
 
 
 def test_a_pocket_fails_after_trying_every_candidate() -> None:

@@ -327,46 +327,95 @@ def plan_detour(route: Route, request: AvoidanceRequest, params: PlannerParams) 
             return result
 
 
+@dataclass(slots=True)
+class SearchFrame:
+    """What a correction search computes from the route, the obstacle points and the
+    conflict alone, not from where it starts: the points in the route's Frenet frame, the
+    window [s_a, s_b] they grow the conflict into, the lateral offsets and inflations that
+    block it, the clearance memo and the route tails it has measured. `retreat_search` tries
+    many starts against the same points and shares one frame among them (the same numbers
+    as a frame made afresh for each)."""
+
+    poly: Polyline
+    obstacles_xy: FloatArray
+    inflation_m: FloatArray
+    l_seed: FloatArray
+    s_a: float
+    s_b: float
+    l_window: FloatArray
+    infl_window: FloatArray
+    memo: ClearanceMemo
+    tails: dict[float, list[CubicBezier]]
+    """The route after each rejoin point tried (candidates share them), filled in by
+    `_build`; the memo measures each tail segment once."""
+
+    @classmethod
+    def of(cls, route: Route, request: AvoidanceRequest, params: PlannerParams) -> SearchFrame:
+        """The frame of the request's obstacle points and conflict (not empty) on route."""
+        d_m = params.d_min_m + params.clearance_margin_m
+        poly = route.polyline()
+        obstacles = request.obstacles_xy
+        inflation = request.obstacles_inflation
+        if inflation is None:
+            inflation = np.zeros(len(obstacles))
+        s_obs, l_obs = project(poly, obstacles)
+        s_seed, l_seed = project(poly, request.conflict_xy)
+        s_a, s_b = float(s_seed.min()), float(s_seed.max())
+        lat_limit = float(np.max(np.abs(l_seed))) + 2.0 * d_m + 2.0
+        window = np.zeros(len(s_obs), dtype=bool)
+        # An inflated point reaches e farther along and across the route than the point.
+        s_lo, s_hi, l_abs = s_obs - inflation, s_obs + inflation, np.abs(l_obs) + inflation
+        for _ in range(20):
+            window = (s_hi >= s_a - 2.0 * d_m) & (s_lo <= s_b + 2.0 * d_m)
+            window &= np.abs(l_obs) - inflation <= lat_limit
+            if not window.any():
+                break
+            new_a, new_b = float(s_lo[window].min()), float(s_hi[window].max())
+            new_limit = max(lat_limit, float(np.max(l_abs[window])) + 2.0 * d_m)
+            if new_a == s_a and new_b == s_b and new_limit == lat_limit:
+                break
+            s_a, s_b, lat_limit = min(s_a, new_a), max(s_b, new_b), new_limit
+        if window.any():
+            l_window, infl_window = l_obs[window], inflation[window]
+        else:
+            l_window, infl_window = l_seed, np.zeros(len(l_seed))
+        return cls(
+            poly=poly,
+            obstacles_xy=obstacles,
+            inflation_m=inflation,
+            l_seed=l_seed,
+            s_a=s_a,
+            s_b=s_b,
+            l_window=l_window,
+            infl_window=infl_window,
+            memo=ClearanceMemo(obstacles, inflation),  # sorted once; tails measured once
+            tails={},
+        )
+
+
 def detour_search(
-    route: Route, request: AvoidanceRequest, params: PlannerParams
+    route: Route,
+    request: AvoidanceRequest,
+    params: PlannerParams,
+    frame: SearchFrame | None = None,
 ) -> Generator[None, None, Detour | None]:
     """`plan_detour` in work units: yields once after the set-up (the projections and the
     candidate list) and once after each candidate tried and rejected, and returns the
     Detour or None.
     A caller with a budget of units per cycle can resume it next cycle (the search is
-    deterministic and clock-free); run to its end it is exactly `plan_detour`."""
+    deterministic and clock-free); run to its end it is exactly `plan_detour`.
+    frame: `SearchFrame.of(route, request, params)`, or one made for another request with
+    the same obstacle points, inflations and conflict (made here when None)."""
     d_m = params.d_min_m + params.clearance_margin_m
-    poly = route.polyline()
-    obstacles = request.obstacles_xy
-    inflation = request.obstacles_inflation
-    if inflation is None:
-        inflation = np.zeros(len(obstacles))
     if len(request.conflict_xy) == 0:
         return None
-    s_obs, l_obs = project(poly, obstacles)
-    s_seed, l_seed = project(poly, request.conflict_xy)
+    if frame is None:
+        frame = SearchFrame.of(route, request, params)
+    poly, obstacles, inflation = frame.poly, frame.obstacles_xy, frame.inflation_m
+    l_seed, s_a, s_b = frame.l_seed, frame.s_a, frame.s_b
+    l_window, infl_window = frame.l_window, frame.infl_window
     s0_arr, l0_arr = project(poly, request.start_xy[None, :])
     s0, l0 = float(s0_arr[0]), float(l0_arr[0])
-
-    s_a, s_b = float(s_seed.min()), float(s_seed.max())
-    lat_limit = float(np.max(np.abs(l_seed))) + 2.0 * d_m + 2.0
-    window = np.zeros(len(s_obs), dtype=bool)
-    # An inflated point reaches e farther along and across the route than the point itself.
-    s_lo, s_hi, l_abs = s_obs - inflation, s_obs + inflation, np.abs(l_obs) + inflation
-    for _ in range(20):
-        window = (s_hi >= s_a - 2.0 * d_m) & (s_lo <= s_b + 2.0 * d_m)
-        window &= np.abs(l_obs) - inflation <= lat_limit
-        if not window.any():
-            break
-        new_a, new_b = float(s_lo[window].min()), float(s_hi[window].max())
-        new_limit = max(lat_limit, float(np.max(l_abs[window])) + 2.0 * d_m)
-        if new_a == s_a and new_b == s_b and new_limit == lat_limit:
-            break
-        s_a, s_b, lat_limit = min(s_a, new_a), max(s_b, new_b), new_limit
-    if window.any():
-        l_window, infl_window = l_obs[window], inflation[window]
-    else:
-        l_window, infl_window = l_seed, np.zeros(len(l_seed))
 
     start_clear = float(min_distance(request.start_xy[None, :], obstacles, inflation)[0])
     seed_mid = float(np.median(l_seed))
@@ -393,8 +442,7 @@ def detour_search(
             )
         ]
 
-    tails: dict[float, list[CubicBezier]] = {}  # the route after each rejoin point tried
-    memo = ClearanceMemo(obstacles, inflation)  # sorted once; the tails measured once
+    tails, memo = frame.tails, frame.memo
     yield
     for cost, w, side, leave, transition, through_base, keep_m in options:
         built = _build(

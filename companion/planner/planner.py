@@ -37,6 +37,7 @@ from companion.planner import speed
 from companion.planner.avoidance import (
     AvoidanceRequest,
     Detour,
+    SearchFrame,
     detour_search,
     min_distance,
     min_distance_within,
@@ -1002,7 +1003,10 @@ class Planner:
                 return _Resolved()
             way = yield from _units(grid_search(self.route, request, self.params))
             return _Resolved(grid=way)
-        detour = yield from _units(detour_search(self.route, request, self.params))
+        frame = (
+            SearchFrame.of(self.route, request, self.params) if len(request.conflict_xy) else None
+        )
+        detour = yield from _units(detour_search(self.route, request, self.params, frame))
         if detour is not None:
             return _Resolved(detour=detour)
         yield True
@@ -1010,7 +1014,9 @@ class Planner:
             return _Resolved()
         track = backwards_track(self._xd_prev[:2], self._track)
         plan = yield from _units(
-            retreat_search(self.route, request, self.params, track, _TRACK_SPACING_M, self._side)
+            retreat_search(
+                self.route, request, self.params, track, _TRACK_SPACING_M, self._side, frame
+            )
         )
         if plan is not None:
             return _Resolved(retreat=plan)

@@ -16,7 +16,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from companion.planner.avoidance import AvoidanceRequest, Detour, detour_search
+from companion.planner.avoidance import AvoidanceRequest, Detour, SearchFrame, detour_search
 from companion.planner.bezier import CubicBezier
 from companion.planner.params import PlannerParams
 from companion.planner.path import Path
@@ -61,10 +61,13 @@ def retreat_search(
     track: FloatArray,
     track_spacing_m: float,
     failed_side: Side,
+    frame: SearchFrame | None = None,
 ) -> Generator[None, None, RetreatPlan | None]:
     """Search, in work units (`detour_search`'s), for the nearest point of the backwards
     track (`backwards_track`, points about track_spacing_m apart) from which a correction
-    exists that avoids failed_side; None if there is none within RETREAT_STEPS_M."""
+    exists that avoids failed_side; None if there is none within RETREAT_STEPS_M. frame:
+    the request's `SearchFrame` if the caller has one (made here otherwise), shared by
+    every trial: they differ only in where they start."""
     if len(track) < 3:
         return None
     seglen = np.hypot(*np.diff(track, axis=0).T)
@@ -85,7 +88,9 @@ def retreat_search(
             avoid_side=failed_side,
             obstacles_inflation=request.obstacles_inflation,
         )
-        detour = yield from detour_search(route, trial, params)
+        if frame is None and len(request.conflict_xy):
+            frame = SearchFrame.of(route, request, params)
+        detour = yield from detour_search(route, trial, params, frame)
         if detour is None:
             continue
         # Back along the covered track (known free), through points every ~2 m.
