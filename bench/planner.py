@@ -25,7 +25,7 @@ import numpy as np
 
 from bench.flight import Flight, fly, load, replay_min, scenario_names, split
 from bench.report import Section, percentiles_us
-from companion.planner import SEARCH_BUDGET_UNITS
+from companion.planner import SEARCH_BUDGET_UNITS, SEARCH_BUDGET_UNITS_AT_REST
 from companion.planner.decision import decide, steepness, thresholds
 from companion.planner.rotations import r_g
 from companion.planner.sensors import SURFACE_FOR_GROUP, Group, range_points_world
@@ -160,9 +160,11 @@ def run(runs: int = 3, replays: int = 100) -> tuple[Section, Flight]:
     sec.details["replan_all_scenarios_us"] = per_scenario
     sec.details["search_units_per_scenario"] = units
     sec.details["search_budget_units"] = SEARCH_BUDGET_UNITS
+    sec.details["search_budget_units_at_rest"] = SEARCH_BUDGET_UNITS_AT_REST
     sec.add(
         "planner.replan.max_units",
-        f"search work units in one cycle, max (all scenarios; budget {SEARCH_BUDGET_UNITS})",
+        f"search work units in one cycle, max (all scenarios; budget {SEARCH_BUDGET_UNITS}, "
+        f"at rest {SEARCH_BUDGET_UNITS_AT_REST})",
         max(u["max_units_per_cycle"] for u in units.values()),
         "units",
         ("<=", SEARCH_BUDGET_UNITS),

@@ -9,7 +9,14 @@ import numpy as np
 import pytest
 
 import companion.planner.planner as planner_mod
-from companion.planner import SEARCH_BUDGET_UNITS, Planner, PlannerParams, Route, VehicleState
+from companion.planner import (
+    SEARCH_BUDGET_UNITS,
+    SEARCH_BUDGET_UNITS_AT_REST,
+    Planner,
+    PlannerParams,
+    Route,
+    VehicleState,
+)
 from companion.planner.avoidance import (
     AvoidanceRequest,
     SearchFrame,
@@ -148,12 +155,12 @@ def test_a_search_resumed_over_cycles_finds_what_one_cycle_finds(
     monkeypatch: pytest.MonkeyPatch,
 ) -> None:
     whole, ranges, state = at_rest_before_a_wall()
-    monkeypatch.setattr(planner_mod, "SEARCH_BUDGET_UNITS", 10**9)
+    monkeypatch.setattr(planner_mod, "SEARCH_BUDGET_UNITS_AT_REST", 10**9)
     first = whole.step(state, ranges, 0.05)
     assert first.diagnostics.replanned
 
     stepped, ranges, state = at_rest_before_a_wall()
-    monkeypatch.setattr(planner_mod, "SEARCH_BUDGET_UNITS", 1)
+    monkeypatch.setattr(planner_mod, "SEARCH_BUDGET_UNITS_AT_REST", 1)
     cycles = 0
     while True:
         cycles += 1
@@ -176,7 +183,37 @@ def test_no_cycle_spends_more_than_the_budget() -> None:
     planner, ranges, state = at_rest_before_a_wall()
     for _ in range(40):
         d = planner.step(state, ranges, 0.05).diagnostics
-        assert 0 <= d.search_units <= SEARCH_BUDGET_UNITS
+        assert 0 <= d.search_units <= SEARCH_BUDGET_UNITS_AT_REST <= SEARCH_BUDGET_UNITS
+
+
+def test_a_long_search_at_rest_is_spread_over_cycles_of_the_rest_budget() -> None:
+    """At rest in a pocket (walls ahead and on both sides), every correction is tried and
+    fails before the way out is found: more units than one cycle at rest may spend, spent
+    over several cycles of at most SEARCH_BUDGET_UNITS_AT_REST while X_d waits."""
+    route = Route(np.array([[0.0, 0.0], [60.0, 0.0]]), 0.0, 0.0)
+    planner = Planner(PARAMS, SENSORS, route, np.array([0.0, 0.0, 2.0]))
+    sides = np.arange(-6.0, 14.0, 0.25)
+    pocket = np.vstack(
+        [
+            wall(14.0, -8.0, 8.0),
+            np.column_stack([sides, np.full(len(sides), 8.0)]),
+            np.column_stack([sides, np.full(len(sides), -8.0)]),
+        ]
+    )
+    planner._memory.add(np.column_stack([pocket, np.full(len(pocket), 2.0)]), 0)
+    state = VehicleState(np.array([0.0, 0.0, 2.0]), 0.0, 0.0, 0.0)
+    ranges = flat_ranges(2.0)
+    spent: list[int] = []
+    for _ in range(200):
+        result = planner.step(state, ranges, 0.05)
+        d = result.diagnostics
+        spent.append(d.search_units)
+        assert d.search_units <= SEARCH_BUDGET_UNITS_AT_REST
+        if d.replanned:
+            break
+        assert result.setpoint.velocity_enu.tolist() == [0.0, 0.0, 0.0]  # waits at rest
+    busy = [u for u in spent if u > 0]
+    assert sum(busy) > SEARCH_BUDGET_UNITS_AT_REST and len(busy) >= 2
 
 
 def test_retreat_needs_a_track_and_finds_the_other_side() -> None:

@@ -92,6 +92,11 @@ correction accepted while moving in the project's scenarios and in the random-wo
 (at most 27 units seen), so that the bound changes no decision made on the move; what it
 spreads over cycles are the searches at rest and the dead-end retreat (up to 9 full
 searches, 50-150 ms in one cycle before)."""
+SEARCH_BUDGET_UNITS_AT_REST = 8
+"""The same bound for a search from X_d at rest: nothing waits on it but the vehicle's
+stop, which it lengthens by a few cycles, and it resumes where it stopped, so a quarter of
+the moving budget keeps those cycles (the slowest there were: 32 units cost 9-21 ms) within
+a few milliseconds and the loop's period."""
 _CLEARANCE_EXTRA_M = 10.0
 """The look-ahead clearances are measured this much beyond the look-ahead at once, metres,
 sliced while the path does not change and brought up to date as the memory changes
@@ -967,7 +972,8 @@ class Planner:
                 obstacles_inflation=nearby_inflation,
             )
             self._search = (key, self._resolve(request, at_rest))
-        resolved = self._advance_search(self._search[1], events)
+        budget = SEARCH_BUDGET_UNITS_AT_REST if at_rest else SEARCH_BUDGET_UNITS
+        resolved = self._advance_search(self._search[1], budget, events)
         if resolved is None and at_rest:
             return False  # the search goes on next cycle, from this same rest point
         self._search = None
@@ -1024,11 +1030,11 @@ class Planner:
         return _Resolved(grid=grid)
 
     def _advance_search(
-        self, search: Generator[bool, None, _Resolved], events: list[str]
+        self, search: Generator[bool, None, _Resolved], budget: int, events: list[str]
     ) -> _Resolved | None:
-        """Run the search for at most SEARCH_BUDGET_UNITS units; its outcome, or None if it
+        """Run the search for at most `budget` units this cycle; its outcome, or None if it
         is not done. Reaching the blocked mark stops the vehicle (and says so once)."""
-        while self._search_units < SEARCH_BUDGET_UNITS:
+        while self._search_units < budget:
             try:
                 blocked_mark = next(search)
             except StopIteration as done:
