@@ -21,7 +21,8 @@ from companion.harness.sweep import (
     SweepOptions,
     Task,
     _HeldFaults,
-    _steep_clearance,
+    _over_relief,
+    _steep_clearances,
     load_layout,
     parse_seeds,
     run_local,
@@ -342,9 +343,10 @@ def test_steep_clearance_leaves_out_the_mesas_the_paper_climbs() -> None:
     clearance = np.array([world.obstacle_distance(p) for p in xyz])
     trace = {"x": xyz[:, 0], "y": xyz[:, 1], "z": xyz[:, 2], "clearance": clearance}
     assert clearance[0] < 1.5 + 1e-9 and clearance[1] == pytest.approx(1.5)
-    assert _steep_clearance(sc, trace, 2.0) == pytest.approx(1.5)
-    only_mesa = {k: v[[0, 2]] for k, v in trace.items()}
-    assert math.isnan(_steep_clearance(sc, only_mesa, 2.0))
+    per_cycle = _steep_clearances(sc, trace)
+    # Beside the mesa the box is far; beside the box the box is 1.5 m away; then far from both.
+    assert per_cycle[0] > 30.0 and per_cycle[1] == pytest.approx(1.5) and per_cycle[2] > 10.0
+    assert np.all(per_cycle >= clearance)  # fewer solids: never nearer
     steep_mesa = sc.model_copy(deep=True)
     steep_mesa.world.features[0].side_slope_deg = 40.0  # steeper than phi_max: gone round
     world40 = World.from_config(steep_mesa.world)
@@ -352,4 +354,16 @@ def test_steep_clearance_leaves_out_the_mesas_the_paper_climbs() -> None:
     d40 = world40.obstacle_distance((x40, 0.0, 2.0))
     near40 = {"x": np.array([x40]), "y": np.zeros(1), "z": np.full(1, 2.0)}
     near40["clearance"] = np.array([d40])
-    assert _steep_clearance(steep_mesa, near40, 2.0) == pytest.approx(d40)
+    assert _steep_clearances(steep_mesa, near40) == pytest.approx([d40])
+
+
+def test_the_height_target_counts_climbable_mesas_as_relief() -> None:
+    """From the first settled cycle on, a cycle counts unless a solid to go round is within
+    2 D_min: beside a climbable mesa (near to all solids, far from the steep ones) it does."""
+    h_err = np.array([0.4, 0.1, 0.2, 0.3, 0.05])
+    all_solids = np.array([50.0, 50.0, 1.8, 1.8, 50.0])  # the mesa is near at cycles 2, 3
+    steep = np.array([50.0, 50.0, 50.0, 3.0, 50.0])  # a box 3 m away at cycle 3
+    away = _over_relief(h_err, steep, 2.0, 0.15)
+    assert away.tolist() == [False, True, True, False, True]
+    # The rule before: every solid within 2 D_min left the cycle out.
+    assert _over_relief(h_err, all_solids, 2.0, 0.15).tolist() == [False, True, False, False, True]

@@ -174,19 +174,17 @@ def run_task(task: Task) -> dict[str, Any]:
             filt = _HeldFaults(FAULTS[task.fault], sc.sensor_table(), task.seed)
         result = run(sc, world, sensor_filter=filt, stall_stop_s=STALL_WINDOW_S)
         m = metrics_mod.for_run(sc, world, result)
-        steep = _steep_clearance(sc, result.trace, sc.planner.d_min_m)
+        steep_per_cycle = _steep_clearances(sc, result.trace)
     except Exception as exc:  # a crash is a finding, reported in the record
         rec.update(outcome="error", error=f"{type(exc).__name__}: {exc}"[:300])
         rec["wall_time_s"] = round(time.perf_counter() - wall0, 3)
         return rec
     tr = result.trace
     d_min = sc.planner.d_min_m
+    below = steep_per_cycle[tr["clearance"] < d_min]
+    steep = float(below.min()) if len(below) and below.min() < d_min else math.nan
     h_err = np.abs(tr["height"] - sc.planner.h_d_m)
-    settled = np.flatnonzero(h_err <= metrics_mod.SETTLE_BAND_M)
-    first = int(settled[0]) if len(settled) else len(h_err)
-    away = np.zeros(len(h_err), dtype=bool)
-    away[first:] = True
-    away &= tr["clearance"] > 2.0 * d_min
+    away = _over_relief(h_err, steep_per_cycle, d_min, metrics_mod.SETTLE_BAND_M)
     step_ms = result.step_time_s * 1000.0
     reached = bool(m["reached_goal"])
     clearance = float(m["min_clearance_m"])
@@ -502,27 +500,36 @@ def _hms(s: float) -> str:
     return f"{s // 3600}:{s // 60 % 60:02d}:{s % 60:02d}"
 
 
-def _steep_clearance(sc: Scenario, trace: Mapping[str, np.ndarray], d_min_m: float) -> float:
-    """Least true clearance (m) from the vehicle to the solids the paper's rule goes round:
-    every obstacle but a mesa whose flank is no steeper than phi_max (eq. 7 climbs that
-    one, keeping H_d above it; with H_d = D_min any height error below H_d then reads as a
-    clearance below D_min). Measured at the cycles below D_min to all solids (no other
-    cycle can be below it to some of them); NaN where it is not below D_min."""
+def _steep_clearances(sc: Scenario, trace: Mapping[str, np.ndarray]) -> np.ndarray:
+    """True clearance (m) at each cycle from the vehicle to the solids the paper's rule goes
+    round: every obstacle but a mesa whose flank is no steeper than phi_max. Eq. (7) climbs
+    such a mesa, keeping H_d above it, so it is relief: with H_d = D_min a height error
+    below H_d would read as a clearance below D_min, and it counts in the height error
+    instead. The trace's own clearance where the world has no such mesa."""
     from companion.sim.world import World
 
-    below = np.flatnonzero(trace["clearance"] < d_min_m)
-    if len(below) == 0:
-        return math.nan
     limit_deg = math.degrees(sc.planner.phi_max_rad)
     features = sc.world.features
     steep = [f for f in features if not (f.type == "mesa" and f.side_slope_deg <= limit_deg)]
     if len(steep) == len(features):  # nothing climbable: the same solids
-        least = float(trace["clearance"][below].min())
-    else:
-        world = World.from_config(sc.world.model_copy(update={"features": steep}))
-        xyz = np.column_stack([trace["x"][below], trace["y"][below], trace["z"][below]])
-        least = min(world.obstacle_distance(p) for p in xyz)
-    return least if least < d_min_m else math.nan
+        return np.asarray(trace["clearance"], dtype=np.float64)
+    world = World.from_config(sc.world.model_copy(update={"features": steep}))
+    xyz = np.column_stack([trace["x"], trace["y"], trace["z"]])
+    return np.array([world.obstacle_distance(p) for p in xyz], dtype=np.float64)
+
+
+def _over_relief(
+    height_err_m: np.ndarray, steep_clearance_m: np.ndarray, d_min_m: float, settle_m: float
+) -> np.ndarray:
+    """The cycles the height target counts, (n,) bool: from the first within settle_m of
+    H_d on, with no solid the paper's rule goes round (`_steep_clearances`) within 2 D_min.
+    A mesa eq. (7) climbs is relief, and its cycles count."""
+    settled = np.flatnonzero(height_err_m <= settle_m)
+    first = int(settled[0]) if len(settled) else len(height_err_m)
+    away = np.zeros(len(height_err_m), dtype=bool)
+    away[first:] = True
+    away &= steep_clearance_m > 2.0 * d_min_m
+    return away
 
 
 def _blank_nan(v: float) -> float | str:
