@@ -191,11 +191,11 @@ def pair_ranges(
         r[:] = math.nan
         return Pairing(r, att, len(fresh), True)
     unpaired = 0
-    cache: dict[int, AttitudeSample | None] = {att.time_boot_ms: att}
+    cache: dict[int, AttitudeSample | None] = {}
     for i in fresh:
         stamp = stamps_ms[i]
-        if stamp <= 0:
-            continue
+        if stamp <= 0 or stamp == att.time_boot_ms:
+            continue  # unstamped, or of the cycle's own time: paired with `att` itself
         if stamp not in cache:
             cache[stamp] = history.at(stamp)
         own = cache[stamp]
