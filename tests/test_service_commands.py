@@ -119,3 +119,41 @@ def test_names_come_from_pymavlink() -> None:
     assert command_name(mav.MAV_CMD_NAV_TAKEOFF) == "MAV_CMD_NAV_TAKEOFF"
     assert command_name(65000) == "MAV_CMD(65000)"
     assert result_name(mav.MAV_RESULT_TEMPORARILY_REJECTED) == "MAV_RESULT_TEMPORARILY_REJECTED"
+
+
+class _HeldConn:
+    """A connection whose COMMAND_ACK future the test completes by hand."""
+
+    target_system, target_component = 1, 1
+
+    def __init__(self) -> None:
+        self.futures: list[asyncio.Future[Any]] = []
+
+    def expect(self, types: Any, pred: Any) -> asyncio.Future[Any]:
+        fut: asyncio.Future[Any] = asyncio.get_running_loop().create_future()
+        self.futures.append(fut)
+        return fut
+
+    def send(self, msg: Any) -> None:
+        pass
+
+    def forget(self, fut: Any) -> None:
+        pass
+
+
+async def test_a_cancel_landing_with_the_ack_is_kept() -> None:
+    """Auto start is cancelled (a ground station changed the mode) in the same loop turn as
+    the arm command's ack arrives: the command ends cancelled, so no retry follows. (With
+    asyncio.wait_for on Python 3.11 the ack's result came back and the cancel was lost.)"""
+    conn = _HeldConn()
+    client = CommandClient(conn, timeout_s=5.0, retries=2)  # type: ignore[arg-type]
+    task = asyncio.create_task(client.arm(True))
+    while not conn.futures:
+        await asyncio.sleep(0)
+    await asyncio.sleep(0)  # (the command now waits on its ack)
+    conn.futures[0].set_result(
+        ack(mav.MAV_CMD_COMPONENT_ARM_DISARM, mav.MAV_RESULT_TEMPORARILY_REJECTED)
+    )
+    task.cancel()
+    with pytest.raises(asyncio.CancelledError):
+        await task

@@ -122,7 +122,11 @@ class CommandClient:
                 if not sent:
                     self.conn.send(msg)
                     sent = True
-                ack = await asyncio.wait_for(fut, timeout)
+                # asyncio.timeout, not wait_for: on Python 3.11 wait_for returns the result
+                # when the ack and a cancel of this task (auto start aborted by a mode change)
+                # land in the same loop turn, and the cancel is lost.
+                async with asyncio.timeout(timeout):
+                    ack = await fut
             except TimeoutError:
                 return None
             finally:

@@ -75,7 +75,8 @@ async def download_mission(
             fut = conn.expect(types, pred)  # type: ignore[arg-type]
             try:
                 conn.send(msg)
-                return await asyncio.wait_for(fut, timeout_s)
+                async with asyncio.timeout(timeout_s):  # (keeps a cancel: see commands.py)
+                    return await fut
             except TimeoutError:
                 continue
             finally:
