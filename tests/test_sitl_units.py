@@ -4,11 +4,17 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import numpy as np
 import pytest
 import yaml
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
-from companion.harness.sitl import _heartbeat_frames, start_heading_deg, wire_to_autopilot
+from companion.harness.sitl import (
+    _heartbeat_frames,
+    goal_distance,
+    start_heading_deg,
+    wire_to_autopilot,
+)
 from companion.sim.scenario import load_scenario
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -67,3 +73,19 @@ def test_start_heading_as_compass() -> None:
     wall = load_scenario(ROOT / "config" / "scenarios" / "wall.yaml")  # east
     assert start_heading_deg(paper) == pytest.approx(270.0)
     assert start_heading_deg(wall) == pytest.approx(90.0)
+
+
+def test_goal_judged_on_the_positions_since_the_route_was_done() -> None:
+    """SITL's positions (10 Hz) from when the route was seen done, not from the planner's
+    last row: the planner writes rows (20 Hz) while it holds at the goal, so its last row
+    often comes after SITL's last position (a wired-wall flight at the goal read nan)."""
+    goal = np.array([60.0, 0.0])
+    t = 100.0 + 0.1 * np.arange(60)  # 6 s of positions closing on the goal
+    x = 60.0 - 0.5 * np.exp(-(t - 100.0))
+    track = np.column_stack([t, x, np.full_like(t, 0.002), np.full((60, 4), 0.0)])
+    last_row = t[-1] + 0.012  # the planner's last row, 12 ms after SITL's last position
+    assert goal_distance(track, goal, last_row) is None  # what the old criterion saw
+    d = goal_distance(track, goal, since=101.0)
+    assert d == pytest.approx(np.hypot(0.5 * np.exp(-5.9), 0.002))
+    assert goal_distance(track[:5], goal, since=101.0) is None  # nothing since: not judged
+    assert goal_distance(track[:0], goal, since=0.0) is None
