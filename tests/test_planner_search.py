@@ -186,10 +186,9 @@ def test_no_cycle_spends_more_than_the_budget() -> None:
         assert 0 <= d.search_units <= SEARCH_BUDGET_UNITS_AT_REST <= SEARCH_BUDGET_UNITS
 
 
-def test_a_long_search_at_rest_is_spread_over_cycles_of_the_rest_budget() -> None:
-    """At rest in a pocket (walls ahead and on both sides), every correction is tried and
-    fails before the way out is found: more units than one cycle at rest may spend, spent
-    over several cycles of at most SEARCH_BUDGET_UNITS_AT_REST while X_d waits."""
+def at_rest_in_a_pocket() -> tuple[Planner, np.ndarray, VehicleState]:
+    """A planner at rest at the route's start with walls ahead and on both sides in its
+    memory: every correction is tried and fails before the way out is found."""
     route = Route(np.array([[0.0, 0.0], [60.0, 0.0]]), 0.0, 0.0)
     planner = Planner(PARAMS, SENSORS, route, np.array([0.0, 0.0, 2.0]))
     sides = np.arange(-6.0, 14.0, 0.25)
@@ -201,8 +200,39 @@ def test_a_long_search_at_rest_is_spread_over_cycles_of_the_rest_budget() -> Non
         ]
     )
     planner._memory.add(np.column_stack([pocket, np.full(len(pocket), 2.0)]), 0)
-    state = VehicleState(np.array([0.0, 0.0, 2.0]), 0.0, 0.0, 0.0)
-    ranges = flat_ranges(2.0)
+    return planner, flat_ranges(2.0), VehicleState(np.array([0.0, 0.0, 2.0]), 0.0, 0.0, 0.0)
+
+
+def test_a_search_at_rest_goes_on_over_memory_changes() -> None:
+    """A vehicle at rest sees its surroundings change every few cycles; a search restarted
+    at each change would never finish. It finishes on the points it started with, spending
+    what it would have spent, and gives the same path."""
+    calm, ranges, state = at_rest_in_a_pocket()
+    busy, _, _ = at_rest_in_a_pocket()
+    spent_calm: list[int] = []
+    spent_busy: list[int] = []
+    for cycle in range(200):
+        a = calm.step(state, ranges, 0.05).diagnostics
+        spent_calm.append(a.search_units)
+        if cycle % 2 == 0:  # a new cell far away every other cycle: the memory changes
+            far = np.array([[-40.0 - cycle, 30.0, 2.0]])
+            busy._memory.add(far, cycle)
+        generation = busy._memory.generation
+        b = busy.step(state, ranges, 0.05).diagnostics
+        spent_busy.append(b.search_units)
+        assert busy._memory.generation >= generation
+        if a.replanned or b.replanned:
+            break
+    assert a.replanned and b.replanned
+    assert sum(spent_busy) == sum(spent_calm) > SEARCH_BUDGET_UNITS_AT_REST
+    assert same_path(calm.path, busy.path)
+
+
+def test_a_long_search_at_rest_is_spread_over_cycles_of_the_rest_budget() -> None:
+    """At rest in a pocket (walls ahead and on both sides), every correction is tried and
+    fails before the way out is found: more units than one cycle at rest may spend, spent
+    over several cycles of at most SEARCH_BUDGET_UNITS_AT_REST while X_d waits."""
+    planner, ranges, state = at_rest_in_a_pocket()
     spent: list[int] = []
     for _ in range(200):
         result = planner.step(state, ranges, 0.05)

@@ -949,9 +949,14 @@ class Planner:
         ):
             return False
         # The search resumes where it stopped last cycle while nothing it depends on has
-        # changed (at rest, the reference point does not move); else it starts afresh.
+        # changed (at rest, the reference point does not move); else it starts afresh. At
+        # rest it also goes on over changes of the memory: it finishes on the points it
+        # started with (a vehicle at rest sees its surroundings change a little every few
+        # cycles, and a search restarted each time would never finish), and the path it gives
+        # is checked against the memory as it is then, as every path is each cycle, before
+        # X_d moves on it.
         key = (
-            self._memory.generation,
+            None if at_rest else self._memory.generation,
             float(here[0]),
             float(here[1]),
             at_rest,
