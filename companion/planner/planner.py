@@ -85,9 +85,9 @@ _TRACK_SPACING_M = 0.5
 _TRACK_MAX_POINTS = 400
 SEARCH_BUDGET_UNITS = 32
 """Work units (candidate corrections tried, `avoidance.detour_search`) a cycle may spend on
-a re-plan. At rest, a search that needs more resumes next cycle where it stopped (while the
-memory's `generation` and everything else it depends on are unchanged); moving, it counts
-as failed (blocked: the vehicle stops and searches again at rest). Enough for every
+a re-plan. At rest, a search that needs more resumes next cycle where it stopped (while X_d,
+the path's mode and sides are unchanged; it finishes on the points it started with); moving,
+it counts as failed (blocked: the vehicle stops and searches again at rest). Enough for every
 correction accepted while moving in the project's scenarios and in the random-world sweep
 (at most 27 units seen), so that the bound changes no decision made on the move; what it
 spreads over cycles are the searches at rest and the dead-end retreat (up to 9 full
