@@ -1,4 +1,4 @@
-"""The one geodesy (`companion.geo`) against pymap3d, its oracle: bit for bit."""
+"""The one geodesy (`companion.geo`) against pymap3d, its oracle: to within a few ulps."""
 
 from __future__ import annotations
 
@@ -23,8 +23,18 @@ def _random_origin(rnd: random.Random) -> GeoPoint:
     return GeoPoint(rnd.uniform(-85, 85), rnd.uniform(-180, 180), rnd.uniform(-400, 4000))
 
 
+def _within_ulps(a: tuple[float, ...], b: tuple[float, ...], ulps: int = 4) -> bool:
+    """Each pair equal to within a few units in the last place. companion.geo does pymap3d's
+    operations with `math`; pymap3d does them with numpy, whose vectorised sin and cos differ
+    from libm's by an ulp on some CPUs (seen on AMD EPYC: 64 of 900 points, at most
+    3e-14 degrees, 3 nm), so bit for bit holds on some machines and not on others."""
+    return all(
+        abs(x - y) <= ulps * math.ulp(max(abs(x), abs(y))) for x, y in zip(a, b, strict=True)
+    )
+
+
 @pytest.mark.parametrize("seed", [0, 1, 2])
-def test_local_frame_equals_pymap3d_bit_for_bit_within_50_km(seed: int) -> None:
+def test_local_frame_equals_pymap3d_within_ulps_within_50_km(seed: int) -> None:
     rnd = random.Random(seed)
     for _ in range(300):
         o = _random_origin(rnd)
@@ -33,12 +43,15 @@ def test_local_frame_equals_pymap3d_bit_for_bit_within_50_km(seed: int) -> None:
         got = frame.to_geodetic(*enu)
         lat, lon, alt = pymap3d.enu2geodetic(*enu, o.lat_deg, o.lon_deg, o.alt_m)
         want = GeoPoint(float(lat), float(lon), float(alt))
-        assert got == want  # the same operations as pymap3d (lockstep flights unchanged)
+        assert _within_ulps(
+            (got.lat_deg, got.lon_deg, got.alt_m), (want.lat_deg, want.lon_deg, want.alt_m)
+        )
         e, n, u = pymap3d.geodetic2enu(
             want.lat_deg, want.lon_deg, want.alt_m, o.lat_deg, o.lon_deg, o.alt_m
         )
         back = frame.to_enu(got)
-        assert back == (float(e), float(n), float(u))
+        # ENU differences of ECEF coordinates of about 6.4e6 m: an ulp there is 1e-9 m.
+        assert max(abs(x - float(y)) for x, y in zip(back, (e, n, u), strict=True)) < 1e-8
         assert max(abs(x - y) for x, y in zip(back, enu, strict=True)) < 1e-3
         assert _metres(got, frame.to_geodetic(*back)) < 1e-3
 
