@@ -154,6 +154,31 @@ def test_clearance_memo_measures_as_min_distance_within() -> None:
     assert np.isinf(empty.within(np.zeros((2, 2)), 1.0)).all()
 
 
+def test_clearance_memo_in_chunks_is_exact_below_the_cutoff() -> None:
+    """Long runs of samples along a path (more than a chunk of `ClearanceMemo.within`): the
+    same numbers below the cutoff, at or above it elsewhere, as `min_distance_within`."""
+    rng = np.random.default_rng(11)
+    chunk = avoidance._CHUNK_SAMPLES
+    seen_below = seen_above = 0
+    for _ in range(100):
+        obstacles = rng.uniform(-40.0, 40.0, size=(int(rng.integers(50, 600)), 2))
+        inflation = rng.uniform(0.0, 1.5, size=len(obstacles))
+        memo = avoidance.ClearanceMemo(obstacles, inflation)
+        n = int(rng.integers(chunk + 1, 6 * chunk))
+        heading = np.cumsum(rng.normal(0.0, 0.05, size=n)) + rng.uniform(0.0, 2.0 * np.pi)
+        steps = 0.2 * np.column_stack([np.cos(heading), np.sin(heading)])
+        samples = rng.uniform(-20.0, 20.0, size=2) + np.cumsum(steps, axis=0)
+        cutoff = float(rng.uniform(0.5, 6.0))
+        expected = avoidance.min_distance_within(samples, obstacles, cutoff, inflation)
+        got = memo.within(samples, cutoff)
+        below = expected < cutoff
+        assert got[below].tobytes() == expected[below].tobytes()
+        assert np.all(got[~below] >= cutoff)
+        seen_below += int(below.sum())
+        seen_above += int((~below).sum())
+    assert seen_below > 1000 and seen_above > 1000
+
+
 def test_comes_closer_with_a_memo_decides_as_without() -> None:
     rng = np.random.default_rng(8)
     decided = set()

@@ -535,6 +535,11 @@ def keeps_clear(
     return not comes_closer([*segments, *ahead], obstacles_xy, required, inflation_m, floor, memo)
 
 
+_CHUNK_SAMPLES = 64
+"""`ClearanceMemo.within` measures a path's samples this many at a time (consecutive, so a
+chunk spans about 13 m of path at _SAMPLE_SPACING_M)."""
+
+
 class ClearanceMemo:
     """A search's obstacle points (fixed for the search) prepared for many clearance checks,
     and what `comes_closer` measured of each segment it saw (its samples, their clearance
@@ -557,7 +562,22 @@ class ClearanceMemo:
 
     def within(self, samples_xy: FloatArray, cutoff_m: float) -> FloatArray:
         """`min_distance_within(samples_xy, obstacles, cutoff_m, inflation)`: the same
-        numbers."""
+        numbers below cutoff_m (elsewhere >= cutoff_m). Samples along a path are taken
+        _CHUNK_SAMPLES at a time, each run with the points of its own box: a long segment's
+        box holds many points that none of its stretches comes near."""
+        n = len(samples_xy)
+        if n <= _CHUNK_SAMPLES:
+            return self._within_box(samples_xy, cutoff_m)
+        out = np.empty(n)
+        for a in range(0, n, _CHUNK_SAMPLES):
+            out[a : a + _CHUNK_SAMPLES] = self._within_box(
+                samples_xy[a : a + _CHUNK_SAMPLES], cutoff_m
+            )
+        return out
+
+    def _within_box(self, samples_xy: FloatArray, cutoff_m: float) -> FloatArray:
+        """`within` against the points in the samples' box grown by cutoff_m plus the
+        largest inflation (the only points that can come nearer than cutoff_m)."""
         if len(samples_xy) == 0 or len(self._xy) == 0:
             return np.full(len(samples_xy), np.inf)
         grow = cutoff_m + self._max_inflation
