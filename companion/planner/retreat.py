@@ -68,10 +68,14 @@ def retreat_search(
     exists that avoids failed_side; None if there is none within RETREAT_STEPS_M. frame:
     the request's `SearchFrame` if the caller has one (made here otherwise), shared by
     every trial: they differ only in where they start."""
-    if len(track) < 3:
-        return None
+    if len(track) < 3 or len(request.conflict_xy) == 0:
+        return None  # (with no conflict every trial's search returns None at once)
     seglen = np.hypot(*np.diff(track, axis=0).T)
     along = np.concatenate([[0.0], np.cumsum(seglen)])
+    if along[-1] < RETREAT_STEPS_M[0]:
+        return None
+    if frame is None:
+        frame = SearchFrame.of(route, request, params)
     for back_m in RETREAT_STEPS_M:
         if back_m > along[-1]:
             break
@@ -88,8 +92,6 @@ def retreat_search(
             avoid_side=failed_side,
             obstacles_inflation=request.obstacles_inflation,
         )
-        if frame is None and len(request.conflict_xy):
-            frame = SearchFrame.of(route, request, params)
         detour = yield from detour_search(route, trial, params, frame)
         if detour is None:
             continue
