@@ -82,12 +82,44 @@ def test_the_lag_is_counted_only_over_the_fits_reach() -> None:
     assert beyond == pytest.approx(0.1 * 3.0**2 / 2)
 
 
+def test_floor_keeps_h_d_from_every_point_and_is_exact_at_a_points_place() -> None:
+    """floor_z: the lowest z at H_d from every stored point. On a step (a rim: the top at
+    z = 1 for x <= 0, the ground at 0 beyond) it follows the circle of radius H_d about the
+    rim past its edge; at a stored point's own place it is that point's z + H_d; farther
+    than H_d from every point it is -inf."""
+    xs = np.arange(-3.0, 3.01, 0.25)
+    store = _store(lambda x, y: 1.0 if x <= 0.0 else 0.0, xs, np.zeros_like(xs))
+    h_d = 2.0
+    at = np.array([-1.0, 0.0, 0.5, 1.5, 10.0])
+    floor = store.floor_z(at, np.zeros_like(at), h_d)
+    assert floor[0] == pytest.approx(1.0 + h_d)
+    assert floor[1] == pytest.approx(1.0 + h_d)
+    assert floor[2] == pytest.approx(1.0 + math.sqrt(h_d**2 - 0.5**2))
+    assert floor[3] == pytest.approx(1.0 + math.sqrt(h_d**2 - 1.5**2))
+    assert floor[4] == -math.inf
+    # Between stored points 0.25 m apart the spheres' envelope dips by H_d - sqrt(H_d^2 -
+    # 0.125^2) (about 4 mm).
+    mid = store.floor_z(np.array([-2.125]), np.array([0.0]), h_d)[0]
+    assert mid == pytest.approx(1.0 + math.sqrt(h_d**2 - 0.125**2))
+
+
+def test_nearest_point_horizontally() -> None:
+    store = GroundPoints(capacity=8, spacing_m=0.01)
+    assert store.nearest_xy(1.0, 2.0)[2] == math.inf
+    store.add(0, 1.0, 1.0, 5.0)
+    store.add(1, 3.0, 1.0, -5.0)
+    x, y, r2 = store.nearest_xy(2.6, 1.2)
+    assert (x, y) == (3.0, 1.0)
+    assert r2 == pytest.approx(0.4**2 + 0.2**2)
+
+
 @pytest.mark.slow
-@pytest.mark.parametrize("name", ["smooth-hill", "crease"])
+@pytest.mark.parametrize("name", ["smooth-hill", "crease", "mesa-rim"])
 def test_shaping_holds_the_height_the_paper_alone_does_not(name: str) -> None:
-    """Over a hill of radius of curvature 12 m (smooth-hill) and the crease between two
-    hills, |H - H_d| (H the shortest distance to the surface) stays within 0.07 and 0.15 m
-    with the ground's shape; eqs (3)-(4) alone lag by g'' L^2 / 2 and leave more."""
+    """Over a hill of radius of curvature 12 m (smooth-hill), the crease between two hills
+    and a climbable mesa's rims and feet (mesa-rim), |H - H_d| (H the shortest distance to
+    the surface) stays within 0.07, 0.15 and 0.15 m with the ground's shape; eqs (3)-(4)
+    alone lag by g'' L^2 / 2, cut the rims, and leave more."""
     path = SCENARIOS / f"{name}.yaml"
     errors = {}
     for shape in (True, False):

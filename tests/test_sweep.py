@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 
 from companion.cli import main
+from companion.harness import metrics as metrics_mod
 from companion.harness.sweep import (
     DEFAULT_LAYOUTS,
     FAULTS,
@@ -22,7 +23,6 @@ from companion.harness.sweep import (
     Task,
     _HeldFaults,
     _over_relief,
-    _steep_clearances,
     load_layout,
     parse_seeds,
     run_local,
@@ -343,7 +343,7 @@ def test_steep_clearance_leaves_out_the_mesas_the_paper_climbs() -> None:
     clearance = np.array([world.obstacle_distance(p) for p in xyz])
     trace = {"x": xyz[:, 0], "y": xyz[:, 1], "z": xyz[:, 2], "clearance": clearance}
     assert clearance[0] < 1.5 + 1e-9 and clearance[1] == pytest.approx(1.5)
-    per_cycle = _steep_clearances(sc, trace)
+    per_cycle = metrics_mod.steep_clearances(sc, trace)
     # Beside the mesa the box is far; beside the box the box is 1.5 m away; then far from both.
     assert per_cycle[0] > 30.0 and per_cycle[1] == pytest.approx(1.5) and per_cycle[2] > 10.0
     assert np.all(per_cycle >= clearance)  # fewer solids: never nearer
@@ -354,7 +354,7 @@ def test_steep_clearance_leaves_out_the_mesas_the_paper_climbs() -> None:
     d40 = world40.obstacle_distance((x40, 0.0, 2.0))
     near40 = {"x": np.array([x40]), "y": np.zeros(1), "z": np.full(1, 2.0)}
     near40["clearance"] = np.array([d40])
-    assert _steep_clearances(steep_mesa, near40) == pytest.approx([d40])
+    assert metrics_mod.steep_clearances(steep_mesa, near40) == pytest.approx([d40])
 
 
 def test_the_height_target_counts_climbable_mesas_as_relief() -> None:

@@ -20,6 +20,8 @@
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping
+from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
@@ -114,6 +116,25 @@ def compute(
         "max_lateral_deviation_m": deviation,
         "passed_side": sides,
     }
+
+
+def steep_clearances(
+    scenario: Scenario, trace: Mapping[str, np.ndarray], base_dir: Path | str | None = None
+) -> np.ndarray:
+    """True clearance (m) at each cycle from the vehicle to the solids the paper's rule goes
+    round: every obstacle but a mesa whose flank is no steeper than phi_max. Eq. (7) climbs
+    such a mesa, keeping H_d above it, so it is relief: with H_d = D_min a height error
+    below H_d would read as a clearance below D_min, and it counts in the height error
+    instead. The trace's own clearance where the world has no such mesa. base_dir: where the
+    scenario's relative heightmap paths start."""
+    limit_deg = math.degrees(scenario.planner.phi_max_rad)
+    features = scenario.world.features
+    steep = [f for f in features if not (f.type == "mesa" and f.side_slope_deg <= limit_deg)]
+    if len(steep) == len(features):  # nothing climbable: the same solids
+        return np.asarray(trace["clearance"], dtype=np.float64)
+    world = World.from_config(scenario.world.model_copy(update={"features": steep}), base_dir)
+    xyz = np.column_stack([trace["x"], trace["y"], trace["z"]])
+    return np.array([world.obstacle_distance(p) for p in xyz], dtype=np.float64)
 
 
 def for_run(scenario: Scenario, world: World, result: RunResult) -> dict[str, Any]:

@@ -29,7 +29,7 @@ import signal
 import socket
 import sys
 import time
-from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
+from collections.abc import Callable, Iterable, Iterator, Sequence
 from concurrent.futures import FIRST_COMPLETED, Future, ProcessPoolExecutor, wait
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -46,7 +46,7 @@ from companion.sim.worldgen import WorldGenConfig, generate, scenario, scenario_
 from companion.tuning import SensorConfig
 
 if TYPE_CHECKING:
-    from companion.sim.scenario import Scenario
+    pass
 
 LAYOUT_DIR = Path(__file__).resolve().parents[2] / "config" / "sensors"
 DEFAULT_LAYOUTS = ("paper-11", "horizontal-7", "ring-8")
@@ -174,7 +174,7 @@ def run_task(task: Task) -> dict[str, Any]:
             filt = _HeldFaults(FAULTS[task.fault], sc.sensor_table(), task.seed)
         result = run(sc, world, sensor_filter=filt, stall_stop_s=STALL_WINDOW_S)
         m = metrics_mod.for_run(sc, world, result)
-        steep_per_cycle = _steep_clearances(sc, result.trace)
+        steep_per_cycle = metrics_mod.steep_clearances(sc, result.trace)
     except Exception as exc:  # a crash is a finding, reported in the record
         rec.update(outcome="error", error=f"{type(exc).__name__}: {exc}"[:300])
         rec["wall_time_s"] = round(time.perf_counter() - wall0, 3)
@@ -498,24 +498,6 @@ class _Progress:
 def _hms(s: float) -> str:
     s = int(s)
     return f"{s // 3600}:{s // 60 % 60:02d}:{s % 60:02d}"
-
-
-def _steep_clearances(sc: Scenario, trace: Mapping[str, np.ndarray]) -> np.ndarray:
-    """True clearance (m) at each cycle from the vehicle to the solids the paper's rule goes
-    round: every obstacle but a mesa whose flank is no steeper than phi_max. Eq. (7) climbs
-    such a mesa, keeping H_d above it, so it is relief: with H_d = D_min a height error
-    below H_d would read as a clearance below D_min, and it counts in the height error
-    instead. The trace's own clearance where the world has no such mesa."""
-    from companion.sim.world import World
-
-    limit_deg = math.degrees(sc.planner.phi_max_rad)
-    features = sc.world.features
-    steep = [f for f in features if not (f.type == "mesa" and f.side_slope_deg <= limit_deg)]
-    if len(steep) == len(features):  # nothing climbable: the same solids
-        return np.asarray(trace["clearance"], dtype=np.float64)
-    world = World.from_config(sc.world.model_copy(update={"features": steep}))
-    xyz = np.column_stack([trace["x"], trace["y"], trace["z"]])
-    return np.array([world.obstacle_distance(p) for p in xyz], dtype=np.float64)
 
 
 def _over_relief(

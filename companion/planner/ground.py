@@ -117,6 +117,36 @@ class GroundPoints:
         self._fit = (x, y, radius_m, self._added, fit)
         return fit
 
+    def floor_z(self, x: FloatArray, y: FloatArray, h_d_m: float) -> FloatArray:
+        """The lowest height z at which each world (x[i], y[i], z) is at least h_d_m from
+        every stored point, (m,) metres; -inf where no point lies within h_d_m horizontally.
+
+        H is the shortest distance to the surface: a point p within h_d_m horizontally needs
+        z >= p_z + sqrt(h_d_m^2 - r^2), r the horizontal distance. A fit cannot follow a
+        crease or an edge (a mesa's rim, a flank's foot); the points themselves can. Every
+        stored point lies on the surface, so at this height the true H is at most h_d_m."""
+        n = self._count
+        xyz = self._xyz[:n]
+        dx = xyz[:, 0] - x[:, None]
+        dy = xyz[:, 1] - y[:, None]
+        room = h_d_m * h_d_m - (dx * dx + dy * dy)
+        need = np.where(room > 0.0, xyz[:, 2] + np.sqrt(np.maximum(room, 0.0)), -np.inf)
+        out: FloatArray = need.max(axis=1, initial=-np.inf)
+        return out
+
+    def nearest_xy(self, x: float, y: float) -> tuple[float, float, float]:
+        """The stored point nearest world (x, y) horizontally: its (x, y) and the squared
+        horizontal distance to it, metres and square metres (inf with none stored)."""
+        n = self._count
+        if n == 0:
+            return x, y, math.inf
+        xyz = self._xyz[:n]
+        dx = xyz[:, 0] - x
+        dy = xyz[:, 1] - y
+        r2 = dx * dx + dy * dy
+        i = int(np.argmin(r2))
+        return float(xyz[i, 0]), float(xyz[i, 1]), float(r2[i])
+
     def _rebase(self, x: float, y: float) -> None:
         """Move the local origin to (x, y) and recompute the stored rows."""
         self._ox, self._oy = x, y

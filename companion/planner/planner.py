@@ -134,6 +134,12 @@ _GROUND_FIT_RADIUS_M = 3.0
 """Ground points within this horizontal radius of the middle of X_d(k-1) -> X_z shape the
 aim (`ground`), metres."""
 _GROUND_LIFT_MAX_M = 0.5
+_SURFACE_AHEAD_M = 0.5
+"""X_d steers at the height H_d from the ground points this far ahead along its path's
+heading (`Planner._surface_pitch`), metres."""
+_SURFACE_SNAP_M = 0.2
+"""... at the ground point nearest there, when one lies this near; else eq. (4) steers, no
+lower than that height, metres."""
 """The most the ground's shape may move eq. (3)'s aim point up or down, metres."""
 
 
@@ -431,9 +437,9 @@ class Planner:
         if x_z is not None:
             if params.shape_terrain:
                 self._remember_ground(pts, surface, len(steep_xyz) > 0)
-            phi_d = desired_pitch_xyz(
-                *self._shaped_aim(x_z, state), *self._xd_prev_xyz, params.phi_max_rad
-            )
+                phi_d = self._surface_pitch(x_z, state, params.phi_max_rad)
+            else:
+                phi_d = desired_pitch_xyz(*x_z, *self._xd_prev_xyz, params.phi_max_rad)
         decision = decide_rows(phi_star.tolist(), self._threshold_list)
         self._carve(state, rot, ranges, valid)
         if len(steep_xyz):
@@ -589,6 +595,45 @@ class Planner:
         )
         lift = min(max(side + bend, -_GROUND_LIFT_MAX_M), _GROUND_LIFT_MAX_M)
         return zx, zy, zz + lift
+
+    def _surface_pitch(
+        self, x_z: tuple[float, float, float], state: VehicleState, phi_max_rad: float
+    ) -> float:
+        """phi_d (radians, within phi_max) from the ground store: H is the shortest distance
+        to the surface, and the stored ground points say where H_d is
+        (`GroundPoints.floor_z`: the lowest height at H_d from every point).
+
+        - Where a ground point lies within _SURFACE_SNAP_M of the place _SURFACE_AHEAD_M
+          ahead of X_d on its heading, X_d steers at H_d from the points there (at that
+          point's own place, where its sphere is exact; between points their envelope dips
+          by H_d - sqrt(H_d^2 - r^2)), raised by the fit's slope across the heading (the
+          points lie in a few lines along the track and fix that slope poorly). Eq. (4)
+          steers at an aim about 2 H_d ahead: a first-order lag that cuts a mesa's rim or a
+          crest on the way down and rounds a flank's foot.
+        - Else eq. (4) on the aim shaped by the fit (`_shaped_aim`).
+        Either is kept no lower than H_d from the points _SURFACE_AHEAD_M ahead."""
+        xd, yd, zd = self._xd_prev_xyz
+        heading = self._path_heading()
+        qx = xd + _SURFACE_AHEAD_M * math.cos(heading)
+        qy = yd + _SURFACE_AHEAD_M * math.sin(heading)
+        store = self._ground_store
+        px, py, r2 = store.nearest_xy(qx, qy)
+        run = math.hypot(px - xd, py - yd)
+        floor_q, floor_p = store.floor_z(np.array([qx, px]), np.array([qy, py]), self._h_d)
+        if r2 <= _SURFACE_SNAP_M**2 and run >= 0.5 * _SURFACE_AHEAD_M:
+            target = float(floor_p)
+            fit = store.fit(0.5 * (px + xd), 0.5 * (py + yd), _GROUND_FIT_RADIUS_M)
+            if fit is not None:
+                side, _ = offsets_from_fit(fit, px, py, heading, self._h_d, 0.0)
+                target += min(max(side, 0.0), _GROUND_LIFT_MAX_M)
+            phi_d = min(max(math.atan2(target - zd, run), -phi_max_rad), phi_max_rad)
+        else:
+            phi_d = desired_pitch_xyz(
+                *self._shaped_aim(x_z, state), *self._xd_prev_xyz, phi_max_rad
+            )
+        if floor_q > -math.inf:
+            phi_d = max(phi_d, min(math.atan2(float(floor_q) - zd, _SURFACE_AHEAD_M), phi_max_rad))
+        return phi_d
 
     def _ground_points(
         self, points: FloatArray, surface: dict[Group, int], state: VehicleState
