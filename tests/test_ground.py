@@ -105,11 +105,11 @@ def test_floor_keeps_h_d_from_every_point_and_is_exact_at_a_points_place() -> No
 
 def test_nearest_point_horizontally() -> None:
     store = GroundPoints(capacity=8, spacing_m=0.01)
-    assert store.nearest_xy(1.0, 2.0)[2] == math.inf
+    assert store.nearest(1.0, 2.0)[3] == math.inf
     store.add(0, 1.0, 1.0, 5.0)
     store.add(1, 3.0, 1.0, -5.0)
-    x, y, r2 = store.nearest_xy(2.6, 1.2)
-    assert (x, y) == (3.0, 1.0)
+    x, y, z, r2 = store.nearest(2.6, 1.2)
+    assert (x, y, z) == (3.0, 1.0, -5.0)
     assert r2 == pytest.approx(0.4**2 + 0.2**2)
 
 

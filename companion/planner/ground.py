@@ -134,18 +134,19 @@ class GroundPoints:
         out: FloatArray = need.max(axis=1, initial=-np.inf)
         return out
 
-    def nearest_xy(self, x: float, y: float) -> tuple[float, float, float]:
-        """The stored point nearest world (x, y) horizontally: its (x, y) and the squared
-        horizontal distance to it, metres and square metres (inf with none stored)."""
+    def nearest(self, x: float, y: float) -> tuple[float, float, float, float]:
+        """The stored point nearest world (x, y) horizontally: its (x, y, z), metres, and the
+        squared horizontal distance to it, square metres (inf with none stored)."""
         n = self._count
         if n == 0:
-            return x, y, math.inf
+            return x, y, math.nan, math.inf
         xyz = self._xyz[:n]
         dx = xyz[:, 0] - x
         dy = xyz[:, 1] - y
         r2 = dx * dx + dy * dy
         i = int(np.argmin(r2))
-        return float(xyz[i, 0]), float(xyz[i, 1]), float(r2[i])
+        px, py, pz = xyz[i].tolist()
+        return px, py, pz, float(r2[i])
 
     def _rebase(self, x: float, y: float) -> None:
         """Move the local origin to (x, y) and recompute the stored rows."""

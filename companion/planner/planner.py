@@ -606,8 +606,10 @@ class Planner:
         - Where a ground point lies within _SURFACE_SNAP_M of the place _SURFACE_AHEAD_M
           ahead of X_d on its heading, X_d steers at H_d from the points there (at that
           point's own place, where its sphere is exact; between points their envelope dips
-          by H_d - sqrt(H_d^2 - r^2)), raised by the fit's slope across the heading (the
-          points lie in a few lines along the track and fix that slope poorly). Eq. (4)
+          by H_d - sqrt(H_d^2 - r^2)), and no lower than H_d off the plane of the fit's
+          slope through that point (the points lie in a few lines along the track, and on
+          a side slope the place where H_d's sphere touches the ground lies between them:
+          there the fit's slope says more). Eq. (4)
           steers at an aim about 2 H_d ahead: a first-order lag that cuts a mesa's rim or a
           crest on the way down and rounds a flank's foot.
         - Else eq. (4) on the aim shaped by the fit (`_shaped_aim`).
@@ -617,15 +619,16 @@ class Planner:
         qx = xd + _SURFACE_AHEAD_M * math.cos(heading)
         qy = yd + _SURFACE_AHEAD_M * math.sin(heading)
         store = self._ground_store
-        px, py, r2 = store.nearest_xy(qx, qy)
+        px, py, pz, r2 = store.nearest(qx, qy)
         run = math.hypot(px - xd, py - yd)
         floor_q, floor_p = store.floor_z(np.array([qx, px]), np.array([qy, py]), self._h_d)
         if r2 <= _SURFACE_SNAP_M**2 and run >= 0.5 * _SURFACE_AHEAD_M:
             target = float(floor_p)
             fit = store.fit(0.5 * (px + xd), 0.5 * (py + yd), _GROUND_FIT_RADIUS_M)
             if fit is not None:
-                side, _ = offsets_from_fit(fit, px, py, heading, self._h_d, 0.0)
-                target += min(max(side, 0.0), _GROUND_LIFT_MAX_M)
+                gx, gy = fit.gradient(px, py)
+                lift = self._h_d * (math.sqrt(1.0 + gx * gx + gy * gy) - 1.0)
+                target = max(target, pz + self._h_d + min(lift, _GROUND_LIFT_MAX_M))
             phi_d = min(max(math.atan2(target - zd, run), -phi_max_rad), phi_max_rad)
         else:
             phi_d = desired_pitch_xyz(
