@@ -164,6 +164,18 @@ def test_a_base_point_close_behind_an_obstacle_is_reached_from_another_direction
     assert float(min_distance(sample_segments(segs), pts).min()) >= D_M - 0.05 - 1e-9
 
 
+def test_through_a_base_point_just_before_the_goal_the_path_still_ends_at_the_goal() -> None:
+    """A base point 7 m behind the wall and the goal 8 m after it, less than a return
+    S-curve: the correction passes through the base point and ends at the goal. (It used to
+    end at the base point, claiming to rejoin at the goal, and the vehicle stopped there for
+    good: random world 241, ring-8.)"""
+    route = Route(np.array([[0.0, 0.0], [27.0, 0.0], [35.0, 0.0]]), 0.0, None)
+    detour = plan_detour(route, request(wall(20.0, -3.0, 1.0)), PARAMS)
+    assert detour is not None
+    np.testing.assert_allclose(detour.path.end, route.base_points[-1], atol=1e-9)
+    assert _nearest_to(detour.path.polyline(0.05).points, route.base_points[1]) < 0.05
+
+
 def test_passing_a_base_point_through_costs_less_than_passing_beside_it() -> None:
     """Of the corrections that exist, one through the base point wins over one that holds
     its offset past it (skipping it), though the skip is shorter."""
