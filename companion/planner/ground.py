@@ -71,7 +71,7 @@ class GroundPoints:
     _REFIT_POINTS points have come in: a fit is a 6 x 6 solve, the rest of a cycle is cheaper.
     """
 
-    def __init__(self, capacity: int = 96, spacing_m: float = 0.2, refit_m: float = 0.1) -> None:
+    def __init__(self, capacity: int = 384, spacing_m: float = 0.2, refit_m: float = 0.1) -> None:
         self._xyz = np.zeros((capacity, 3))
         self._rows = np.zeros((capacity, 6))
         self._ox, self._oy = 0.0, 0.0
