@@ -782,7 +782,7 @@ def _build(
     via.append((hold_p, t))
     rejoin_p, rejoin_t, _ = _route_frame(poly, rejoin_s)
     if via_base is not None:
-        at_end = base_s >= route.length - 1e-9  # the goal: arrive there, from any side
+        at_end = base_s is not None and base_s >= route.length - 1e-9  # the goal: arrive there
         base_dir = _base_direction(
             hold_p, t, via_base, base_t, None if at_end else rejoin_p, rejoin_t
         )
