@@ -9,7 +9,7 @@ import pytest
 
 from companion.harness import metrics as metrics_mod
 from companion.harness.closed_loop import run
-from companion.planner.ground import GroundFit, GroundPoints, offsets_from_fit
+from companion.planner.ground import GroundFit, GroundPoints, floor_z, offsets_from_fit
 from companion.sim.scenario import load_scenario
 from companion.sim.world import World
 
@@ -82,6 +82,11 @@ def test_the_lag_is_counted_only_over_the_fits_reach() -> None:
     assert beyond == pytest.approx(0.1 * 3.0**2 / 2)
 
 
+def _floor_at(store: GroundPoints, x: float, y: float, h_d: float) -> float:
+    points, r2 = store.near(x, y, h_d)
+    return floor_z(points[:, 2], r2, h_d)
+
+
 def test_floor_keeps_h_d_from_every_point_and_is_exact_at_a_points_place() -> None:
     """floor_z: the lowest z at H_d from every stored point. On a step (a rim: the top at
     z = 1 for x <= 0, the ground at 0 beyond) it follows the circle of radius H_d about the
@@ -90,27 +95,26 @@ def test_floor_keeps_h_d_from_every_point_and_is_exact_at_a_points_place() -> No
     xs = np.arange(-3.0, 3.01, 0.25)
     store = _store(lambda x, y: 1.0 if x <= 0.0 else 0.0, xs, np.zeros_like(xs))
     h_d = 2.0
-    at = np.array([-1.0, 0.0, 0.5, 1.5, 10.0])
-    floor = store.floor_z(at, np.zeros_like(at), h_d)
-    assert floor[0] == pytest.approx(1.0 + h_d)
-    assert floor[1] == pytest.approx(1.0 + h_d)
-    assert floor[2] == pytest.approx(1.0 + math.sqrt(h_d**2 - 0.5**2))
-    assert floor[3] == pytest.approx(1.0 + math.sqrt(h_d**2 - 1.5**2))
-    assert floor[4] == -math.inf
+    assert _floor_at(store, -1.0, 0.0, h_d) == pytest.approx(1.0 + h_d)
+    assert _floor_at(store, 0.0, 0.0, h_d) == pytest.approx(1.0 + h_d)
+    assert _floor_at(store, 0.5, 0.0, h_d) == pytest.approx(1.0 + math.sqrt(h_d**2 - 0.5**2))
+    assert _floor_at(store, 1.5, 0.0, h_d) == pytest.approx(1.0 + math.sqrt(h_d**2 - 1.5**2))
+    assert _floor_at(store, 10.0, 0.0, h_d) == -math.inf
     # Between stored points 0.25 m apart the spheres' envelope dips by H_d - sqrt(H_d^2 -
     # 0.125^2) (about 4 mm).
-    mid = store.floor_z(np.array([-2.125]), np.array([0.0]), h_d)[0]
+    mid = _floor_at(store, -2.125, 0.0, h_d)
     assert mid == pytest.approx(1.0 + math.sqrt(h_d**2 - 0.125**2))
 
 
-def test_nearest_point_horizontally() -> None:
+def test_near_gives_the_points_within_a_radius_and_their_distances() -> None:
     store = GroundPoints(capacity=8, spacing_m=0.01)
-    assert store.nearest(1.0, 2.0)[3] == math.inf
+    points, r2 = store.near(1.0, 2.0, 5.0)
+    assert points.shape == (0, 3) and r2.shape == (0,)
     store.add(0, 1.0, 1.0, 5.0)
     store.add(1, 3.0, 1.0, -5.0)
-    x, y, z, r2 = store.nearest(2.6, 1.2)
-    assert (x, y, z) == (3.0, 1.0, -5.0)
-    assert r2 == pytest.approx(0.4**2 + 0.2**2)
+    points, r2 = store.near(2.6, 1.2, 1.0)
+    assert points.tolist() == [[3.0, 1.0, -5.0]]
+    assert r2.tolist() == pytest.approx([0.4**2 + 0.2**2])
 
 
 @pytest.mark.slow

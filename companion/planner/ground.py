@@ -117,36 +117,15 @@ class GroundPoints:
         self._fit = (x, y, radius_m, self._added, fit)
         return fit
 
-    def floor_z(self, x: FloatArray, y: FloatArray, h_d_m: float) -> FloatArray:
-        """The lowest height z at which each world (x[i], y[i], z) is at least h_d_m from
-        every stored point, (m,) metres; -inf where no point lies within h_d_m horizontally.
-
-        H is the shortest distance to the surface: a point p within h_d_m horizontally needs
-        z >= p_z + sqrt(h_d_m^2 - r^2), r the horizontal distance. A fit cannot follow a
-        crease or an edge (a mesa's rim, a flank's foot); the points themselves can. Every
-        stored point lies on the surface, so at this height the true H is at most h_d_m."""
-        n = self._count
-        xyz = self._xyz[:n]
-        dx = xyz[:, 0] - x[:, None]
-        dy = xyz[:, 1] - y[:, None]
-        room = h_d_m * h_d_m - (dx * dx + dy * dy)
-        need = np.where(room > 0.0, xyz[:, 2] + np.sqrt(np.maximum(room, 0.0)), -np.inf)
-        out: FloatArray = need.max(axis=1, initial=-np.inf)
-        return out
-
-    def nearest(self, x: float, y: float) -> tuple[float, float, float, float]:
-        """The stored point nearest world (x, y) horizontally: its (x, y, z), metres, and the
-        squared horizontal distance to it, square metres (inf with none stored)."""
-        n = self._count
-        if n == 0:
-            return x, y, math.nan, math.inf
-        xyz = self._xyz[:n]
+    def near(self, x: float, y: float, radius_m: float) -> tuple[FloatArray, FloatArray]:
+        """The stored points within radius_m of world (x, y) horizontally, (k, 3) world ENU
+        metres (a copy), and their squared horizontal distances from (x, y), (k,) m^2."""
+        xyz = self._xyz[: self._count]
         dx = xyz[:, 0] - x
         dy = xyz[:, 1] - y
         r2 = dx * dx + dy * dy
-        i = int(np.argmin(r2))
-        px, py, pz = xyz[i].tolist()
-        return px, py, pz, float(r2[i])
+        inside = r2 <= radius_m * radius_m
+        return xyz[inside], r2[inside]
 
     def _rebase(self, x: float, y: float) -> None:
         """Move the local origin to (x, y) and recompute the stored rows."""
@@ -206,3 +185,21 @@ def offsets_from_fit(
     side = h_d_m * (tilt - math.sqrt(1.0 + along * along))
     bend = -0.5 * fit.second_along(yaw_rad) * lead_m * lead_m
     return side, bend
+
+
+def floor_z(z: FloatArray, r2: FloatArray, h_d_m: float) -> float:
+    """The lowest height at which a place is at least h_d_m from every point of heights z
+    (k,) metres at squared horizontal distances r2 (k,) m^2 from it; -inf when none lies
+    within h_d_m horizontally.
+
+    H is the shortest distance to the surface: a point p within h_d_m horizontally needs
+    z >= p_z + sqrt(h_d_m^2 - r^2) (the envelope of spheres of radius h_d_m about the
+    points). A fit cannot follow a crease or an edge (a mesa's rim, a flank's foot); the
+    points themselves can. Points on the surface: at this height the true H is at most
+    h_d_m."""
+    if len(z) == 0:
+        return -math.inf
+    room = h_d_m * h_d_m - r2
+    need = z + np.sqrt(np.maximum(room, 0.0))
+    need[room <= 0.0] = -math.inf
+    return float(need.max())

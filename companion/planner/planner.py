@@ -47,7 +47,7 @@ from companion.planner.avoidance import (
 from companion.planner.decision import chord_steepness_rows, decide_rows, steepness, thresholds
 from companion.planner.frames import wrap_pi
 from companion.planner.gridpath import GridPlan, grid_search
-from companion.planner.ground import GroundPoints, offsets_from_fit
+from companion.planner.ground import GroundPoints, floor_z, offsets_from_fit
 from companion.planner.memory import ObstacleMemory
 from companion.planner.params import ArcMethod, PlannerParams
 from companion.planner.path import Path
@@ -619,11 +619,16 @@ class Planner:
         qx = xd + _SURFACE_AHEAD_M * math.cos(heading)
         qy = yd + _SURFACE_AHEAD_M * math.sin(heading)
         store = self._ground_store
-        px, py, pz, r2 = store.nearest(qx, qy)
+        # Every point within H_d of q, or of a point within _SURFACE_SNAP_M of q.
+        points, r2q = store.near(qx, qy, self._h_d + _SURFACE_SNAP_M)
+        floor_q = floor_z(points[:, 2], r2q, self._h_d)
+        k = int(np.argmin(r2q)) if len(r2q) else -1
+        px, py, pz = points[k].tolist() if k >= 0 else (qx, qy, math.nan)
         run = math.hypot(px - xd, py - yd)
-        floor_q, floor_p = store.floor_z(np.array([qx, px]), np.array([qy, py]), self._h_d)
-        if r2 <= _SURFACE_SNAP_M**2 and run >= 0.5 * _SURFACE_AHEAD_M:
-            target = float(floor_p)
+        if k >= 0 and r2q[k] <= _SURFACE_SNAP_M**2 and run >= 0.5 * _SURFACE_AHEAD_M:
+            dx = points[:, 0] - px
+            dy = points[:, 1] - py
+            target = floor_z(points[:, 2], dx * dx + dy * dy, self._h_d)
             fit = store.fit(0.5 * (px + xd), 0.5 * (py + yd), _GROUND_FIT_RADIUS_M)
             if fit is not None:
                 gx, gy = fit.gradient(px, py)
@@ -635,7 +640,7 @@ class Planner:
                 *self._shaped_aim(x_z, state), *self._xd_prev_xyz, phi_max_rad
             )
         if floor_q > -math.inf:
-            phi_d = max(phi_d, min(math.atan2(float(floor_q) - zd, _SURFACE_AHEAD_M), phi_max_rad))
+            phi_d = max(phi_d, min(math.atan2(floor_q - zd, _SURFACE_AHEAD_M), phi_max_rad))
         return phi_d
 
     def _ground_points(
