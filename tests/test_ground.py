@@ -137,3 +137,26 @@ def test_shaping_holds_the_height_the_paper_alone_does_not(name: str) -> None:
     limit = 0.07 if name == "smooth-hill" else 0.15
     assert errors[True] <= limit
     assert errors[False] > limit
+
+
+def test_a_lone_spurious_surface_range_never_enters_the_ground_store() -> None:
+    """Over flat ground, one cycle's forward surface range 1 m short (a point 0.7 m in the
+    air) stays out of the store: its sensor's previous range disagrees, and so does the
+    next one's with it. The store's floor would otherwise hold X_d up while it is kept."""
+    from companion.planner import VehicleState
+    from companion.planner.sensors import Group
+    from tests.test_planner import SENSORS, flat_ranges, make
+
+    planner = make()
+    forward = SENSORS.surface_index[Group.SURFACE_FORWARD]
+    state = VehicleState(np.array([0.0, 0.0, 2.0]), 0.0, 0.0, 0.0)
+    for k in range(60):
+        ranges = flat_ranges(float(state.position_enu[2]))
+        if k == 30:
+            ranges[forward] -= 1.0
+        res = planner.step(state, ranges, 0.05)
+        sp = res.setpoint  # flown level: the ranges are those of a level vehicle
+        state = VehicleState(sp.position_enu, 0.0, 0.0, sp.yaw_rad)
+    points, _ = planner._ground_store.near(0.0, 0.0, 100.0)
+    assert len(points) > 10
+    assert float(np.abs(points[:, 2]).max()) < 1e-6

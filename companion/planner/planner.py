@@ -134,6 +134,9 @@ _GROUND_FIT_RADIUS_M = 3.0
 """Ground points within this horizontal radius of the middle of X_d(k-1) -> X_z shape the
 aim (`ground`), metres."""
 _GROUND_LIFT_MAX_M = 0.5
+_GROUND_CONFIRM_M = 0.2
+"""A surface hit enters the ground store only if its sensor's previous range is this near
+to its own, metres (`Planner._remember_ground`)."""
 _SURFACE_AHEAD_M = 0.5
 """X_d steers at the height H_d from the ground points this far ahead along its path's
 heading (`Planner._surface_pitch`), metres."""
@@ -307,6 +310,7 @@ class Planner:
         self._track.append((float(start[0]), float(start[1])))
         self._last_ground: dict[Group, list[float]] = {}  # [x, y, z] world ENU, metres
         self._ground_store = GroundPoints()
+        self._surface_range: dict[int, float] = {}  # each surface sensor's last range, m
         self._sight_key: tuple[float, float] | None = None
         self._failed_attempt: tuple[int, int, int, bool] | None = None
         self._failed_cycle = 0
@@ -436,7 +440,7 @@ class Planner:
         phi_d = 0.0  # no ground in view: hold the height
         if x_z is not None:
             if params.shape_terrain:
-                self._remember_ground(pts, surface, len(steep_xyz) > 0)
+                self._remember_ground(pts, ranges, surface, len(steep_xyz) > 0)
                 phi_d = self._surface_pitch(x_z, state, params.phi_max_rad)
             else:
                 phi_d = desired_pitch_xyz(*x_z, *self._xd_prev_xyz, params.phi_max_rad)
@@ -564,14 +568,21 @@ class Planner:
         return None
 
     def _remember_ground(
-        self, pts: list[list[float]], surface: dict[Group, int], steep: bool
+        self, pts: list[list[float]], ranges: FloatArray, surface: dict[Group, int], steep: bool
     ) -> None:
-        """This cycle's surface hits that are not too steep to climb into the ground store."""
+        """This cycle's surface hits that are not too steep to climb into the ground store,
+        each only when its sensor's previous range agrees within _GROUND_CONFIRM_M: the
+        store's floor is a maximum over its points (`_surface_pitch`), and one spurious
+        short range (a point in the air) would hold X_d up for as long as it is kept."""
         skip = set(self._steep_rows.tolist()) if steep else set()
         for i in surface.values():
-            if i not in skip:
-                x, y, z = pts[i]
-                self._ground_store.add(i, x, y, z)
+            r = float(ranges[i])
+            prev = self._surface_range.get(i)
+            self._surface_range[i] = r
+            if i in skip or prev is None or abs(r - prev) > _GROUND_CONFIRM_M:
+                continue
+            x, y, z = pts[i]
+            self._ground_store.add(i, x, y, z)
 
     def _shaped_aim(
         self, x_z: tuple[float, float, float], state: VehicleState
