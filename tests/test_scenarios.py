@@ -71,11 +71,11 @@ def test_reference_point_keeps_its_speed(flown: tuple) -> None:  # type: ignore[
 
 
 @pytest.mark.slow
-def test_never_closer_than_d_min(flown: tuple) -> None:  # type: ignore[type-arg]
+def test_never_closer_than_d_min(flown: tuple, request: pytest.FixtureRequest) -> None:  # type: ignore[type-arg]
     """D_min from every solid eq. (7) goes round; a mesa no steeper than phi_max is relief,
     climbed at H_d (`metrics.steep_clearances`; its height is `max_height_error_m`'s)."""
     scenario, m, result = flown
-    path = next(p for p in SCENARIOS if load_scenario(p).name == scenario.name)
+    path: Path = request.node.callspec.params["flown"]
     clearance = metrics_mod.steep_clearances(scenario, result.trace, path.parent)
     assert float(clearance.min()) >= scenario.planner.d_min_m
     assert m["collisions"] == 0

@@ -33,7 +33,7 @@ from collections.abc import Callable, Iterable, Iterator, Sequence
 from concurrent.futures import FIRST_COMPLETED, Future, ProcessPoolExecutor, wait
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, TextIO
+from typing import Any, TextIO
 
 import numpy as np
 import yaml
@@ -44,9 +44,6 @@ from companion.sim.mavlink.faults import SensorFaults
 from companion.sim.vehicle import VehicleModelConfig
 from companion.sim.worldgen import WorldGenConfig, generate, scenario, scenario_yaml, to_scenario
 from companion.tuning import SensorConfig
-
-if TYPE_CHECKING:
-    pass
 
 LAYOUT_DIR = Path(__file__).resolve().parents[2] / "config" / "sensors"
 DEFAULT_LAYOUTS = ("paper-11", "horizontal-7", "ring-8")

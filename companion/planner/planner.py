@@ -134,6 +134,7 @@ _GROUND_FIT_RADIUS_M = 3.0
 """Ground points within this horizontal radius of the middle of X_d(k-1) -> X_z shape the
 aim (`ground`), metres."""
 _GROUND_LIFT_MAX_M = 0.5
+"""The most the ground's shape may move eq. (3)'s aim point up or down, metres."""
 _GROUND_CONFIRM_M = 0.2
 """A surface hit enters the ground store only if its sensor's previous range is this near
 to its own, metres (`Planner._remember_ground`)."""
@@ -143,7 +144,6 @@ heading (`Planner._surface_pitch`), metres."""
 _SURFACE_SNAP_M = 0.2
 """... at the ground point nearest there, when one lies this near; else eq. (4) steers, no
 lower than that height, metres."""
-"""The most the ground's shape may move eq. (3)'s aim point up or down, metres."""
 
 
 @dataclass(frozen=True, slots=True)
@@ -590,8 +590,6 @@ class Planner:
         """Eq. (3)'s aim point raised for the slope across the heading and for the lag over
         curved relief (`ground.offsets_from_fit`), when the ground store fits a surface.
         (x, y, z) world ENU, metres."""
-        if not self.params.shape_terrain:
-            return x_z  # (and the ground store stays empty: `step` fills it only for this)
         zx, zy, zz = x_z
         xd, yd, _ = self._xd_prev_xyz
         # About the middle of the stretch eq. (4) steers over: X_d (k-1) to the aim.
@@ -611,8 +609,8 @@ class Planner:
         self, x_z: tuple[float, float, float], state: VehicleState, phi_max_rad: float
     ) -> float:
         """phi_d (radians, within phi_max) from the ground store: H is the shortest distance
-        to the surface, and the stored ground points say where H_d is
-        (`GroundPoints.floor_z`: the lowest height at H_d from every point).
+        to the surface, and the stored ground points say where H_d is (`ground.floor_z`:
+        the lowest height at H_d from every point).
 
         - Where a ground point lies within _SURFACE_SNAP_M of the place _SURFACE_AHEAD_M
           ahead of X_d on its heading, X_d steers at H_d from the points there (at that
@@ -620,9 +618,9 @@ class Planner:
           by H_d - sqrt(H_d^2 - r^2)), and no lower than H_d off the plane of the fit's
           slope through that point (the points lie in a few lines along the track, and on
           a side slope the place where H_d's sphere touches the ground lies between them:
-          there the fit's slope says more). Eq. (4)
-          steers at an aim about 2 H_d ahead: a first-order lag that cuts a mesa's rim or a
-          crest on the way down and rounds a flank's foot.
+          there the fit's slope says more). Eq. (4) steers at an aim about 2 H_d ahead: a
+          first-order lag that cuts a mesa's rim or a crest on the way down and rounds a
+          flank's foot.
         - Else eq. (4) on the aim shaped by the fit (`_shaped_aim`).
         Either is kept no lower than H_d from the points _SURFACE_AHEAD_M ahead."""
         xd, yd, zd = self._xd_prev_xyz
