@@ -36,6 +36,8 @@ _MIN_POINTS = 8
 _REBASE_M = 8.0
 # A fit is redone once this many points have come in since (else when its centre moves).
 _REFIT_POINTS = 2
+# Fits kept for reuse: the planner asks about two places a cycle (under X_d, and ahead).
+_KEPT_FITS = 2
 
 
 @dataclass(frozen=True, slots=True)
@@ -47,6 +49,12 @@ class GroundFit:
     origin_y: float
     coef: tuple[float, float, float, float, float, float]
     points: int
+
+    def height(self, x: float, y: float) -> float:
+        """z at world (x, y), metres."""
+        c0, c1, c2, c3, c4, c5 = self.coef
+        dx, dy = x - self.origin_x, y - self.origin_y
+        return c0 + c1 * dx + c2 * dy + c3 * dx * dx + c4 * dx * dy + c5 * dy * dy
 
     def gradient(self, x: float, y: float) -> tuple[float, float]:
         """dz/dx, dz/dy at world (x, y) (dimensionless)."""
@@ -67,7 +75,7 @@ class GroundPoints:
 
     Each point is kept with its row of the quadric's design matrix about a local origin (moved,
     and the rows recomputed, when a fit is asked for farther than _REBASE_M from it), and the
-    last fit is reused while its centre has moved less than refit_m and fewer than
+    last fits are reused while their centre has moved less than refit_m and fewer than
     _REFIT_POINTS points have come in: a fit is a 6 x 6 solve, the rest of a cycle is cheaper.
     """
 
@@ -80,7 +88,7 @@ class GroundPoints:
         self._spacing2 = spacing_m * spacing_m
         self._refit2 = refit_m * refit_m
         self._last: dict[int, tuple[float, float]] = {}
-        self._fit: tuple[float, float, float, int, GroundFit | None] | None = None
+        self._fits: list[tuple[float, float, float, int, GroundFit | None]] = []
         self._added = 0
 
     def __len__(self) -> int:
@@ -103,18 +111,17 @@ class GroundPoints:
     def fit(self, x: float, y: float, radius_m: float) -> GroundFit | None:
         """The quadric through the stored points within radius_m of (x, y), or None when
         fewer than a handful are there (the last fit while little has changed)."""
-        last = self._fit
-        if (
-            last is not None
-            and last[2] == radius_m
-            and (x - last[0]) ** 2 + (y - last[1]) ** 2 < self._refit2
-            and self._added - last[3] < _REFIT_POINTS
-        ):
-            return last[4]
+        for last in self._fits:
+            if (
+                last[2] == radius_m
+                and (x - last[0]) ** 2 + (y - last[1]) ** 2 < self._refit2
+                and self._added - last[3] < _REFIT_POINTS
+            ):
+                return last[4]
         if (x - self._ox) ** 2 + (y - self._oy) ** 2 > _REBASE_M * _REBASE_M:
             self._rebase(x, y)
         fit = self._solve(x, y, radius_m)
-        self._fit = (x, y, radius_m, self._added, fit)
+        self._fits = [(x, y, radius_m, self._added, fit), *self._fits[: _KEPT_FITS - 1]]
         return fit
 
     def near(self, x: float, y: float, radius_m: float) -> tuple[FloatArray, FloatArray]:

@@ -144,6 +144,10 @@ heading (`Planner._surface_pitch`), metres."""
 _SURFACE_SNAP_M = 0.2
 """... at the ground point nearest there, when one lies this near; else eq. (4) steers, no
 lower than that height, metres."""
+_SLOPE_AHEAD_MARGIN_RAD = 1e-3
+"""Where no ground point lies ahead, the fitted slope under X_d takes over from eq. (4) on
+a descent only when it descends more steeply by this much, radians: over level ground the
+fit's rounding (1e-11) must not move a level flight."""
 
 
 @dataclass(frozen=True, slots=True)
@@ -621,7 +625,11 @@ class Planner:
           there the fit's slope says more). Eq. (4) steers at an aim about 2 H_d ahead: a
           first-order lag that cuts a mesa's rim or a crest on the way down and rounds a
           flank's foot.
-        - Else eq. (4) on the aim shaped by the fit (`_shaped_aim`).
+        - Else eq. (4) on the aim shaped by the fit (`_shaped_aim`), or, where the slope
+          fitted under X_d descends more steeply, H_d off that slope _SURFACE_AHEAD_M
+          ahead: a level body's forward sensor (a multicopter's) meets a descent nearly as
+          steep as its tilt only past the foot, and eq. (4) then steers along the chord
+          over the foot, up to 1 m above H_d (docs/paper.md).
         Either is kept no lower than H_d from the points _SURFACE_AHEAD_M ahead."""
         xd, yd, zd = self._xd_prev_xyz
         heading = self._path_heading()
@@ -648,6 +656,13 @@ class Planner:
             phi_d = desired_pitch_xyz(
                 *self._shaped_aim(x_z, state), *self._xd_prev_xyz, phi_max_rad
             )
+            fit = store.fit(xd, yd, _GROUND_FIT_RADIUS_M)
+            if fit is not None and phi_d < 0.0:
+                gx, gy = fit.gradient(qx, qy)
+                target = fit.height(qx, qy) + self._h_d * math.sqrt(1.0 + gx * gx + gy * gy)
+                down = math.atan2(target - zd, _SURFACE_AHEAD_M)
+                if down < phi_d - _SLOPE_AHEAD_MARGIN_RAD:
+                    phi_d = max(down, -phi_max_rad)
         if floor_q > -math.inf:
             phi_d = max(phi_d, min(math.atan2(floor_q - zd, _SURFACE_AHEAD_M), phi_max_rad))
         return phi_d
