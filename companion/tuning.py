@@ -57,6 +57,7 @@ class PlannerConfig(Strict):
     paper_delta: Annotated[float, Field(gt=0, lt=0.1)] = 1e-4
     goal_tolerance_m: Positive = 0.05
     reaction_time_s: Annotated[float, Field(ge=0, le=5, allow_inf_nan=False)] = 0.4
+    leash_m: Positive = 2.0
     shape_terrain: bool = True
 
     def to_params(self) -> PlannerParams:

@@ -35,6 +35,11 @@ class PlannerParams:
         then overshooting a decelerating setpoint): X_d brakes v * reaction_time_s earlier,
         and further by how far the vehicle is measured ahead of X_d along the path. 0: the
         paper's ideal stop exactly at the trigger.
+    leash_m: how far (3-D) the vehicle may be from X_d: X_d slows from half of it and waits
+        at it, so that a vehicle that does not follow (stuck, landed, held back by wind,
+        a slow climb) is never sent a setpoint far ahead (an autopilot flies the straight
+        line to it, cutting a correction's curve) and a route is never called done with the
+        vehicle elsewhere.
     shape_terrain: raise eq. (3)'s aim point for the ground's slope across the heading and
         its curvature along it, from a fit of the recent surface hits (`ground`); False: the
         paper's eqs (3)-(4) alone.
@@ -56,6 +61,7 @@ class PlannerParams:
     paper_delta: float = 1e-4
     goal_tolerance_m: float = 0.05
     reaction_time_s: float = 0.4
+    leash_m: float = 2.0
     shape_terrain: bool = True
 
     def __post_init__(self) -> None:
@@ -72,6 +78,7 @@ class PlannerParams:
             "memory_cell_m",
             "paper_delta",
             "goal_tolerance_m",
+            "leash_m",
         )
         for name in positive:
             value = getattr(self, name)

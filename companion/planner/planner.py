@@ -324,6 +324,7 @@ class Planner:
         self._v_cruise = params.v_d_mps  # v_d, or the layout's limit without the lead
         self._v_layout = params.v_d_mps  # that limit with this cycle's lead
         self._ahead_m = 0.0  # the vehicle ahead of X_d along the path, metres
+        self._held_by_leash = False  # X_d waits for a vehicle a leash from it
         # Obstacle sensors that read a sector (`SensorSpec.fov_rad`), and the rows of this
         # cycle's steep points (`_steep_points`), for `_sector_arcs`.
         self._sector_rows = np.flatnonzero(sensors.fov_rad > 0.0)
@@ -473,6 +474,10 @@ class Planner:
         self._ahead_m = self._vehicle_ahead_m(state.position_enu, heading)
         self._update_layout_limit(dt_s, events)
         v_target = self._speed_target()
+        lag = self._vehicle_lag_m(state.position_enu)
+        v_leash = speed.leash_limit(lag, params.leash_m, v_target, params.accel_max_mps2)
+        self._announce_leash(lag, v_leash == 0.0 < v_target, events)
+        v_target = v_leash
         yaw_error = wrap_pi(heading - self._yaw)
         if abs(yaw_error) > _YAW_ALIGNED_RAD and self._v <= speed.STOPPED_MPS:
             v_target = 0.0  # turn on the spot before leaving a stop in a new direction
@@ -523,6 +528,7 @@ class Planner:
             self._path.length - self._s <= params.goal_tolerance_m
             and self._v <= speed.STOPPED_MPS
             and self._path_ends_at_goal()
+            and lag <= 0.5 * params.leash_m
         )
         x_d.setflags(write=False)
         setpoint = Setpoint(x_d, velocity, self._yaw, phi_d)
@@ -1308,6 +1314,27 @@ class Planner:
         xd, yd, _ = self._xd_prev_xyz
         ahead = (x - xd) * math.cos(heading) + (y - yd) * math.sin(heading)
         return ahead if math.isfinite(ahead) and ahead > 0.0 else 0.0
+
+    def _vehicle_lag_m(self, position_enu: FloatArray) -> float:
+        """How far the vehicle is from last cycle's X_d, the setpoint it is flying to:
+        3-D, metres."""
+        x, y, z = position_enu.tolist()
+        xd, yd, zd = self._xd_prev_xyz
+        return math.sqrt((x - xd) ** 2 + (y - yd) ** 2 + (z - zd) ** 2)
+
+    def _announce_leash(self, lag_m: float, stopped: bool, events: list[str]) -> None:
+        """Say once when the leash stops X_d to wait for the vehicle (stopped), and once when
+        the vehicle has closed to half the leash again (lag_m, metres)."""
+        leash = self.params.leash_m
+        if not self._held_by_leash and stopped:
+            self._held_by_leash = True
+            events.append(
+                f"vehicle {lag_m:.1f} m from the setpoint (leash {leash:g} m): "
+                "waiting for it to follow"
+            )
+        elif self._held_by_leash and lag_m <= 0.5 * leash:
+            self._held_by_leash = False
+            events.append("vehicle following again")
 
     def _free_range(self, ranges: FloatArray, valid: BoolArray) -> tuple[float, float]:
         """Sum of free range seen by the left and by the right obstacle sensors, metres."""

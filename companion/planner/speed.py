@@ -48,6 +48,16 @@ def rest_margin_m(cruise_mps: float, reaction_s: float) -> float:
     return max(cruise_mps, 0.0) * max(reaction_s, 0.0)
 
 
+def leash_limit(lag_m: float, leash_m: float, v_max_mps: float, accel_mps2: float) -> float:
+    """The speed X_d may keep with the vehicle lag_m from it (3-D, metres): v_max_mps up to
+    half the leash, then the speed from which braking at accel_mps2 stops at the leash
+    (0 within _REST_M of it and beyond)."""
+    if lag_m <= 0.5 * leash_m:
+        return v_max_mps
+    room = leash_m - lag_m
+    return min(v_max_mps, braking_speed(room, accel_mps2)) if room > _REST_M else 0.0
+
+
 def next_stop(stops: Sequence[float], s_m: float) -> float | None:
     """The first stop (arc length on the path: a cusp, the end of a retreat) ahead of s_m."""
     for stop in stops:

@@ -75,6 +75,7 @@ PARAMS: tuple[ParamSpec, ...] = (
     ParamSpec("TFC_LOOKAHEAD", "lookahead_m", "m", "how far ahead conflicts are checked"),
     ParamSpec("TFC_REACT_T", "reaction_time_s", "s", "reaction allowance of a stop"),
     ParamSpec("TFC_GOAL_TOL", "goal_tolerance_m", "m", "distance that counts as arrived"),
+    ParamSpec("TFC_LEASH", "leash_m", "m", "how far the vehicle may be from the setpoint"),
 )
 """The table, in param_index order (a new entry goes at the end: indices are kept)."""
 
