@@ -46,6 +46,7 @@ from companion.planner.avoidance import (
 )
 from companion.planner.decision import chord_steepness_rows, decide_rows, steepness, thresholds
 from companion.planner.frames import wrap_pi
+from companion.planner.freespace import FreeFans
 from companion.planner.gridpath import GridPlan, grid_search
 from companion.planner.ground import GroundPoints, floor_z, offsets_from_fit
 from companion.planner.memory import ObstacleMemory
@@ -120,6 +121,16 @@ _BLOCKED_AGAIN_M = 0.5
 """Left without a new path, the blocked state is said again only once X_d has moved this
 far from where it was left, metres."""
 _SECTOR_ARC_SPACING_M = 0.5
+# Sector readings kept as evidence of free space (`FreeFans`): the poses, and how far apart
+# (metres moved or radians turned); 32 poses 0.5 m apart are the last 16 m flown.
+_FREE_POSES = 32
+_FREE_POSE_MOVE_M = 0.5
+_FREE_POSE_TURN_RAD = math.radians(10.0)
+# Boxed in at rest by sector arcs (`Planner._start_scan`): how long each heading of the
+# turn is held (s), how many turns one place gets, and how near counts as the same place (m).
+_SCAN_HOLD_S = 0.5
+_SCANS_PER_PLACE = 2
+_SCAN_PLACE_M = 1.0
 """Spacing of the points a sector reading's arc enters the memory with, metres."""
 _YAW_RATE_AT_REST_RAD_S = 0.8
 _YAW_ALIGNED_RAD = 0.1
@@ -328,6 +339,21 @@ class Planner:
         # Obstacle sensors that read a sector (`SensorSpec.fov_rad`), and the rows of this
         # cycle's steep points (`_steep_points`), for `_sector_arcs`.
         self._sector_rows = np.flatnonzero(sensors.fov_rad > 0.0)
+        self._scan: list[float] = []  # yaw offsets still to turn to at rest, radians
+        self._scan_held_s = 0.0
+        self._scan_place: tuple[int, int] | None = None
+        self._scans_here = 0
+        self._free_fans = (
+            FreeFans(
+                len(self._sector_rows),
+                poses=_FREE_POSES,
+                move_m=_FREE_POSE_MOVE_M,
+                turn_rad=_FREE_POSE_TURN_RAD,
+                tolerance_m=_CARVE_TOLERANCE_M,
+            )
+            if self._sector_rows.size
+            else None
+        )
         self._steep_rows = np.zeros(0, dtype=np.intp)
         # An accepted correction's stretch inside the re-plan band: arc lengths on the path
         # and the clearances it was accepted with (`_escape_exempt`); None if it has none.
@@ -483,6 +509,8 @@ class Planner:
             v_target = 0.0  # turn on the spot before leaving a stop in a new direction
         if self._search is not None and self._v <= speed.STOPPED_MPS:
             v_target = 0.0  # at rest, a search still going on finishes from here
+        if self._scan:
+            v_target = 0.0  # turning on the spot to read the sectors from other headings
         self._v = speed.ramp(self._v, v_target, params.accel_max_mps2, dt_s)
         step_m = speed.step_to_next_stop(self._v * dt_s, self._s, self._stops, phi_d)
         if params.arc_method is ArcMethod.EXACT:
@@ -500,9 +528,16 @@ class Planner:
         heading = self._path_heading()
         if self._v > speed.STOPPED_MPS:
             self._yaw = heading
+            self._scan = []
         else:
+            aim = heading + self._scan[0] if self._scan else heading
             turn = _YAW_RATE_AT_REST_RAD_S * dt_s
-            self._yaw = wrap_pi(self._yaw + min(max(wrap_pi(heading - self._yaw), -turn), turn))
+            self._yaw = wrap_pi(self._yaw + min(max(wrap_pi(aim - self._yaw), -turn), turn))
+            if self._scan and abs(wrap_pi(aim - self._yaw)) < 1e-9:
+                self._scan_held_s += dt_s
+                if self._scan_held_s >= _SCAN_HOLD_S:
+                    self._scan.pop(0)
+                    self._scan_held_s = 0.0
         cos_phi = math.cos(phi_d)
         velocity = np.array(
             [
@@ -806,15 +841,27 @@ class Planner:
         sector = fov > 0.0
         if not sector.any():
             return xyz, inflation, slope
-        extra_xyz, extra_inflation, extra_slope = [xyz], [inflation], [slope]
-        for k in np.flatnonzero(sector):
+        arcs: list[FloatArray] = []
+        which = np.flatnonzero(sector)
+        for k in which:
             i = int(rows[k])
             r = float(ranges[i])
             n = max(2, math.ceil(float(fov[k]) * r / _SECTOR_ARC_SPACING_M) + 1)
             fan = sector_fan_flu(self.sensors.boresights_flu[i], float(fov[k]), n)
-            extra_xyz.append(position_enu + r * (fan @ rot.T))
-            extra_inflation.append(np.full(n, inflation[k]))
-            extra_slope.append(np.full(n, slope[k]))
+            arcs.append(position_enu + r * (fan @ rot.T))
+        if self._free_fans is not None:
+            # Where a fan from another pose saw part of an arc free, the object is on the
+            # rest of it (all of it seen free: the readings disagree, and it all stays).
+            seen = self._free_fans.seen_free(np.vstack(arcs))
+            ends = np.cumsum([len(a) for a in arcs])[:-1]
+            for j, part in enumerate(np.split(seen, ends)):
+                if part.any() and not part.all():
+                    arcs[j] = arcs[j][~part]
+        extra_xyz, extra_inflation, extra_slope = [xyz], [inflation], [slope]
+        for k, arc in zip(which, arcs, strict=True):
+            extra_xyz.append(arc)
+            extra_inflation.append(np.full(len(arc), inflation[k]))
+            extra_slope.append(np.full(len(arc), slope[k]))
         return np.vstack(extra_xyz), np.concatenate(extra_inflation), np.concatenate(extra_slope)
 
     def _path_heading(self) -> float:
@@ -835,6 +882,7 @@ class Planner:
         self._search = None
         self._escape = None
         self._grid_way = False
+        self._scan = []
 
     def _record_track(self, x: float, y: float) -> None:
         """Append X_d to the covered track every _TRACK_SPACING_M; going back over the
@@ -1081,7 +1129,30 @@ class Planner:
             self._take_grid_way(resolved.grid, events)
             return True
         self._failed_attempt, self._failed_cycle = attempt, self._cycle
+        if at_rest and self._free_fans is not None and not self._scan:
+            self._start_scan(events)
         return False
+
+    def _start_scan(self, events: list[str]) -> None:
+        """Boxed in at rest with proximity sectors: turn on the spot half a sector each way
+        and back (a quarter the second time at the same place), holding each heading
+        _SCAN_HOLD_S. The sectors then read from headings that split their arcs
+        differently, and what each sees free trims the others' arcs (`FreeFans`,
+        carving), so the next search sees less of the arcs' phantom part."""
+        x, y = self._xd_prev[:2].tolist()
+        place = (round(x / _SCAN_PLACE_M), round(y / _SCAN_PLACE_M))
+        if place != self._scan_place:
+            self._scan_place, self._scans_here = place, 0
+        if self._scans_here >= _SCANS_PER_PLACE:
+            return
+        half = 0.5 * float(self.sensors.fov_rad[self._sector_rows].max())
+        offset = half / (2**self._scans_here)
+        self._scans_here += 1
+        self._scan, self._scan_held_s = [offset, -offset, 0.0], 0.0
+        events.append(
+            f"boxed in by proximity sector arcs: turning {math.degrees(offset):.0f} degrees "
+            "each way to narrow them"
+        )
 
     def _resolve(
         self, request: AvoidanceRequest, at_rest: bool
@@ -1283,29 +1354,32 @@ class Planner:
         reach = np.where(valid, r, np.where(nothing, sensors.max_range_m, 0.0))
         free = reach - _CARVE_SHORT_M
         use = (valid | nothing) & (free > 0.0)
+        sector = sensors.fov_rad > 0.0
+        cone = use & sector
+        if cone.any():
+            # A sector reading is the nearest object anywhere across the sector: nothing is
+            # nearer in all of it, so its whole width is free up to the reading.
+            fan_args = (
+                state.position_enu,
+                rot[:, 2],
+                sensors.boresights_flu[cone] @ rot.T,
+                0.5 * sensors.fov_rad[cone],
+                free[cone],
+            )
+            if self._free_fans is not None:
+                self._free_fans.add(*fan_args, state.yaw_rad)
         if not use.any() or len(self._memory) == 0:
             return
-        sector = sensors.fov_rad > 0.0
         beam = use & ~sector
         if beam.any() and not moving:
             dirs = sensors.boresights_flu[beam] @ rot.T
             self._memory.carve(
                 state.position_enu, dirs, free[beam], _CARVE_TOLERANCE_M, _CARVE_SUPPORT_M
             )
-        cone = use & sector
         if cone.any() and len(self._memory):
-            # A sector reading is the nearest object anywhere across the sector: nothing
-            # is nearer in all of it, so its whole width carves (a reading's arc, entered
-            # from farther away, is over-wide once seen from nearer).
-            self._memory.carve_sectors(
-                state.position_enu,
-                rot[:, 2],
-                sensors.boresights_flu[cone] @ rot.T,
-                0.5 * sensors.fov_rad[cone],
-                free[cone],
-                _CARVE_TOLERANCE_M,
-                _CARVE_SUPPORT_M,
-            )
+            # That carves across the sector's width (a reading's arc, entered from farther
+            # away, is over-wide once seen from nearer).
+            self._memory.carve_sectors(*fan_args, _CARVE_TOLERANCE_M, _CARVE_SUPPORT_M)
 
     def _vehicle_ahead_m(self, position_enu: FloatArray, heading: float) -> float:
         """How far the vehicle is ahead of last cycle's X_d along the path's heading there
