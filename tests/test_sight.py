@@ -80,6 +80,8 @@ def test_planner_announces_and_applies_the_layout_limit() -> None:
         res = planner.step(state, ranges, 0.05)
         events += res.diagnostics.events
         speeds.append(res.diagnostics.speed_ref_mps)
+        # The vehicle follows X_d (one left behind would hold it on the leash).
+        state = VehicleState(np.array(res.setpoint.position_enu), 0.0, 0.0, 0.0)
     flag = wall_flag_distance_m(sensors, 2.0, 0.6)
     limit = layout_speed_limit_mps(flag, 2.3, 1.0, 0.05, params.reaction_time_s)
     assert limit < layout_speed_limit_mps(flag, 2.3, 1.0, 0.05) < 3.0
