@@ -79,7 +79,7 @@ class FreeFans:
         world ENU unit vectors spread +-half_width_rad (n,) about up_enu, free for free_m
         (n,) metres along them) unless the pose is within move_m and turn_rad of the last
         kept one. heading_rad: the body's heading (ENU, from +x). True if kept."""
-        x, y, z = (float(v) for v in np.asarray(origin_enu).reshape(3))
+        x, y, z = np.asarray(origin_enu, dtype=np.float64).reshape(3).tolist()
         last = self._last
         if last is not None:
             moved2 = (x - last[0]) ** 2 + (y - last[1]) ** 2 + (z - last[2]) ** 2
