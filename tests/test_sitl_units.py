@@ -12,10 +12,14 @@ from pymavlink.dialects.v20 import ardupilotmega as mavlink
 from companion.harness.sitl import (
     _heartbeat_frames,
     goal_distance,
+    home_height,
     start_heading_deg,
     wire_to_autopilot,
 )
+from companion.sim.mavlink.bridge import BridgeCore
+from companion.sim.mavlink.config import BridgeConfig
 from companion.sim.scenario import load_scenario
+from companion.sim.world import World
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -89,3 +93,29 @@ def test_goal_judged_on_the_positions_since_the_route_was_done() -> None:
     assert d == pytest.approx(np.hypot(0.5 * np.exp(-5.9), 0.002))
     assert goal_distance(track[:5], goal, since=101.0) is None  # nothing since: not judged
     assert goal_distance(track[:0], goal, since=0.0) is None
+
+
+def test_sitl_home_goes_to_the_lowest_terrain_near_the_route() -> None:
+    """SITL's flat ground must lie below every relief the route descends to: a home at the
+    start's height (the top of steep-descent's mesa, 7 m) left the vehicle sitting on it."""
+    for name, start_ground, home in (("steep-descent", 7.0, 0.0), ("paper", 0.0, 0.0)):
+        path = ROOT / "config" / "scenarios" / f"{name}.yaml"
+        scenario = load_scenario(path)
+        world = World.from_config(scenario.world, path.parent)
+        start = scenario.start(world)
+        ground = float(world.height(start[0], start[1]))
+        assert ground == pytest.approx(start_ground, abs=1e-3)
+        low = home_height(scenario, world)
+        assert low <= ground  # never above the start
+        assert low == pytest.approx(home, abs=1e-3)
+
+
+def test_the_bridge_places_the_home_at_anchor_z() -> None:
+    path = ROOT / "config" / "scenarios" / "steep-descent.yaml"
+    scenario = load_scenario(path)
+    world = World.from_config(scenario.world, path.parent)
+    specs = [s.to_spec() for s in scenario.sensors]
+    at_terrain = BridgeCore(BridgeConfig(anchor_xy=(0.0, 0.0)), world, specs)
+    low = BridgeCore(BridgeConfig(anchor_xy=(0.0, 0.0), anchor_z=0.0), world, specs)
+    np.testing.assert_allclose(at_terrain.anchor, [0.0, 0.0, 7.0], atol=1e-9)
+    np.testing.assert_allclose(low.anchor, [0.0, 0.0, 0.0])

@@ -10,11 +10,15 @@ Three parts, all on 127.0.0.1:
   10) and proximity sensor (PRX1_TYPE 2), and the companion reads what SITL re-publishes;
 - the service (`companion.service.Service`, monotonic clock, auto start).
 
-Frames: SITL's home sits at world (start x, y, terrain height there), so world ENU = start
-+ ENU offset from home; the route points handed to the service are relative to home. SITL's
-own ground is flat at home altitude; the world's relief and obstacles exist in the sensors
-only. The truth used for the metrics is the pose SITL reports (GLOBAL_POSITION_INT and
-ATTITUDE, as received by the bridge), so the figures say how the real autopilot flew.
+Frames: SITL's home sits at world (start x, y, the lowest terrain height near the route:
+`home_height`), so world ENU = that point + ENU offset from home; the route points handed to
+the service are relative to home. SITL's own ground is flat at home altitude, below all the
+relief the route flies over (a home at the start's height put SITL's ground above any
+descent, and the vehicle sat on it); the world's relief and obstacles exist in the sensors
+only. The take-off climbs from that ground to the start's height (through the virtual
+ground where the start lies higher) before the planner takes over. The truth used for the
+metrics is the pose SITL reports (GLOBAL_POSITION_INT and ATTITUDE, as received by the
+bridge), so the figures say how the real autopilot flew.
 
 Time: the service runs on the wall clock, so a flight takes its route length / v_d in wall
 seconds whatever SITL's speed-up; see docs/simulator.md for why flights use speed-up 1.
@@ -444,16 +448,17 @@ def service_config(
     anchor_xy: np.ndarray,
     log_dir: Path,
     sensors: list[dict[str, Any]],
+    takeoff_alt_m: float,
     extra: dict[str, Any] | None = None,
 ) -> Any:
-    """The service configuration flying `scenario` against SITL's stream on udp `port`."""
-    start_z = scenario.start_position[2] if scenario.start_position else scenario.planner.h_d_m
+    """The service configuration flying `scenario` against SITL's stream on udp `port`;
+    takeoff_alt_m: the start's height above SITL's home, metres."""
     points = (np.array(scenario.route.points[1:], dtype=float) - anchor_xy).tolist()
     raw: dict[str, Any] = {
         "link": {"connection": f"udpin:127.0.0.1:{port}"},
         "control": {
             "rate_hz": 1.0 / scenario.dt_s,
-            "auto_start": {"enabled": True, "takeoff_alt_m": float(start_z)},
+            "auto_start": {"enabled": True, "takeoff_alt_m": float(takeoff_alt_m)},
         },
         "route": {
             "source": "config",
@@ -467,6 +472,27 @@ def service_config(
     for key, value in (extra or {}).items():
         raw[key] = {**raw.get(key, {}), **value}
     return parse_config(raw)
+
+
+HOME_MARGIN_M = 20.0
+"""`home_height` samples the terrain this far round the route's base points (metres): a
+corrected path may leave the route by that much."""
+
+
+def home_height(scenario: Scenario, world: World, step_m: float = 1.0) -> float:
+    """The lowest terrain height (world z, metres) over the box round the route's base
+    points grown by HOME_MARGIN_M, sampled every step_m: where SITL's home (and its flat
+    ground) goes, so that no relief the vehicle follows lies below it."""
+    pts = np.array(scenario.route.points, dtype=float)
+    lo = pts.min(axis=0) - HOME_MARGIN_M
+    hi = pts.max(axis=0) + HOME_MARGIN_M
+    xs = np.arange(lo[0], hi[0] + step_m, step_m)
+    ys = np.arange(lo[1], hi[1] + step_m, step_m)
+    gx, gy = np.meshgrid(xs, ys)
+    # The base points themselves too: the home is never above the start.
+    x = np.concatenate([gx.ravel(), pts[:, 0]])
+    y = np.concatenate([gy.ravel(), pts[:, 1]])
+    return float(np.min(world.height(x, y)))
 
 
 class Flight:
@@ -487,7 +513,7 @@ class Flight:
         self.out_dir = out_dir
         self.world = World.from_config(scenario.world, base_dir)
         start = scenario.start(self.world)
-        self.anchor = np.array([start[0], start[1], float(self.world.height(start[0], start[1]))])
+        self.anchor = np.array([start[0], start[1], home_height(scenario, self.world)])
         extra = dict(service_extra or {})
         if topology == "autopilot":
             wired = wire_to_autopilot(scenario.sensors)
@@ -498,7 +524,13 @@ class Flight:
             sensors = [s.model_dump(exclude_none=True) for s in scenario.sensors]
         self.log_dir = out_dir / "flightlog"
         self.cfg = service_config(
-            scenario, sitl.port, self.anchor[:2], self.log_dir, sensors, extra
+            scenario,
+            sitl.port,
+            self.anchor[:2],
+            self.log_dir,
+            sensors,
+            float(start[2] - self.anchor[2]),
+            extra,
         )
         # Rates in wall time: 10 Hz, twice what the service's 0.5 s sensor age limit needs
         # (every DISTANCE_SENSOR costs the service a decode: 11 sensors at 20 Hz were half
@@ -513,6 +545,7 @@ class Flight:
             system_id=1,
             component_id=1 if topology == "companion" else 158,
             anchor_xy=(float(self.anchor[0]), float(self.anchor[1])),
+            anchor_z=float(self.anchor[2]),
         )
         self.bridge = SensorBridge(bridge_cfg, self.world, [s.to_spec() for s in scenario.sensors])
         self.bridge.core.track = []

@@ -10,7 +10,8 @@ that pose and sends a DISTANCE_SENSOR per configured sensor, at `rate_hz` wall-c
 - `send_to: companion`: straight to `companion_address` over UDP, filled the way the
   autopilot (from its HEARTBEAT: ArduPilot or PX4) re-reports them, as if it had sent them.
 
-Placement: the autopilot's home sits at world (anchor_xy, terrain height there); world
+Placement: the autopilot's home sits at world (anchor_xy, anchor_z: by default the terrain
+height there); world
 ENU = anchor + ENU offset of the reported position from home. The SITL's own ground stays
 flat at home altitude; the virtual terrain is only seen through the sensors.
 
@@ -55,7 +56,10 @@ class BridgeCore:
         self.world = world
         self.sensors = tuple(sensors)
         ax, ay = config.anchor_xy
-        self.anchor = np.array([ax, ay, float(np.asarray(world.height(ax, ay)))])
+        az = config.anchor_z
+        if az is None:
+            az = float(np.asarray(world.height(ax, ay)))
+        self.anchor = np.array([ax, ay, az])
         self.autopilot_family: Literal["ardupilot", "px4"] = "ardupilot"
         self.autopilot_sysid: int | None = None
         self.home: LocalFrame | None = None

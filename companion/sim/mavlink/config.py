@@ -197,7 +197,11 @@ class BridgeConfig(_Strict):
     system_id: Annotated[int, Field(ge=1, le=254)] = 1
     component_id: Annotated[int, Field(ge=1, le=255)] = mavlink.MAV_COMP_ID_PERIPHERAL
     anchor_xy: tuple[Finite, Finite] = (0.0, 0.0)
-    """World x, y (ENU metres) of the autopilot's home; its z is the terrain height there."""
+    """World x, y (ENU metres) of the autopilot's home."""
+    anchor_z: Finite | None = None
+    """World z (ENU metres) of the autopilot's home, where its own flat ground is; None: the
+    terrain height at anchor_xy. Below the start, a vehicle that takes off there climbs
+    through the virtual ground first, and relief down to it can be flown."""
 
     @model_validator(mode="after")
     def _companion_needs_address(self) -> BridgeConfig:
