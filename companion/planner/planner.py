@@ -121,6 +121,7 @@ _BLOCKED_AGAIN_M = 0.5
 """Left without a new path, the blocked state is said again only once X_d has moved this
 far from where it was left, metres."""
 _SECTOR_ARC_SPACING_M = 0.5
+"""Spacing of the points a sector reading's arc enters the memory with, metres."""
 # Sector readings kept as evidence of free space (`FreeFans`): the poses, and how far apart
 # (metres moved or radians turned); 32 poses 0.5 m apart are the last 16 m flown.
 _FREE_POSES = 32
@@ -131,7 +132,6 @@ _FREE_POSE_TURN_RAD = math.radians(10.0)
 _SCAN_HOLD_S = 0.5
 _SCANS_PER_PLACE = 2
 _SCAN_PLACE_M = 1.0
-"""Spacing of the points a sector reading's arc enters the memory with, metres."""
 _YAW_RATE_AT_REST_RAD_S = 0.8
 _YAW_ALIGNED_RAD = 0.1
 _GROUND_HOLD_RANGE = 4.0
