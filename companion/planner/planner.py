@@ -528,7 +528,7 @@ class Planner:
         heading = self._path_heading()
         if self._v > speed.STOPPED_MPS:
             self._yaw = heading
-            self._scan = []
+            self._scan.clear()  # (no list made each cycle)
         else:
             aim = heading + self._scan[0] if self._scan else heading
             turn = _YAW_RATE_AT_REST_RAD_S * dt_s

@@ -11,9 +11,9 @@ that pose and sends a DISTANCE_SENSOR per configured sensor, at `rate_hz` wall-c
   autopilot (from its HEARTBEAT: ArduPilot or PX4) re-reports them, as if it had sent them.
 
 Placement: the autopilot's home sits at world (anchor_xy, anchor_z: by default the terrain
-height there); world
-ENU = anchor + ENU offset of the reported position from home. The SITL's own ground stays
-flat at home altitude; the virtual terrain is only seen through the sensors.
+height there); world ENU = anchor + ENU offset of the reported position from home. The
+SITL's own ground stays flat at home altitude; the virtual terrain is only seen through the
+sensors.
 
 The bridge asks for the messages it needs (MAV_CMD_SET_MESSAGE_INTERVAL, REQUEST_MESSAGE for
 HOME_POSITION), since ArduPilot sends nothing but HEARTBEAT to a client that has not asked.
