@@ -143,6 +143,10 @@ class ControlConfig(Section):
         vehicle restarts from the vehicle's position instead of pulling it back.
     on_finish: what to do at the last base point: hold there, or ask the autopilot to land or
         return (the only mode changes the service makes besides auto start).
+    face_route_deg: on taking over, a vehicle whose heading is more than this from the
+        bearing of the first base point turns in place to face it before the route starts
+        (its forward sensors then look the way it will fly, and the first spline does not
+        swing out along the old heading); 180 never turns.
     """
 
     rate_hz: Annotated[float, Field(ge=1, le=100)] = 20.0
@@ -152,6 +156,7 @@ class ControlConfig(Section):
     reengage: bool = True
     restart_distance_m: Positive = 3.0
     on_finish: Literal["hold", "land", "rtl"] = "hold"
+    face_route_deg: Annotated[float, Field(ge=0, le=180)] = 30.0
 
 
 class RouteSection(Section):
@@ -161,7 +166,8 @@ class RouteSection(Section):
         position) or `points_latlon` ([lat, lon] degrees); "mission" downloads the
         autopilot's mission and flies its waypoints (ArduPilot's item 0 is home and skipped).
     The vehicle's position when the service takes over is prepended as the first base point,
-    with the vehicle's heading as the start heading.
+    with the vehicle's heading as the start heading (after turning to face the first base
+    point: `control.face_route_deg`).
     arrival_heading_deg: ENU degrees (counter-clockwise from east), optional.
     Bounds (as for a downloaded mission): at most MAX_ROUTE_POINTS points, each within
     MAX_ROUTE_EXTENT_M of home (points) or of the first point (points_latlon), consecutive

@@ -23,7 +23,17 @@ import yaml
 from pymavlink import mavutil
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
-from companion.harness.sitl import Flight, Sitl, SitlFlight, find_sitl, fly_on_sitl, free_udp_port
+from companion.harness.sitl import (
+    PX4_MAX_INSTANCE,
+    Flight,
+    Px4Sitl,
+    Sitl,
+    SitlFlight,
+    find_px4,
+    find_sitl,
+    fly_on_sitl,
+    free_udp_port,
+)
 from companion.sim.scenario import Scenario, load_scenario
 
 LAUNCHER = find_sitl()
@@ -32,6 +42,8 @@ SKIP_REASON = (
     "(the sitl tests fly the real autopilot)"
 )
 needs_sitl = pytest.mark.skipif(LAUNCHER is None, reason=SKIP_REASON)
+PX4_BUNDLE = find_px4()
+PX4_SKIP_REASON = "no PX4 SITL at ../shared/sitl/px4/ next to the repository"
 
 _instances = itertools.count(20 + (os.getpid() % 8) * 8)
 _lock = threading.Lock()
@@ -54,6 +66,25 @@ def next_instance() -> int:
             if all(_tcp_free(5760 + 10 * i + k) for k in range(4)):
                 return i
     raise RuntimeError("no free SITL instance")
+
+
+def _udp_free(port: int) -> bool:
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+        try:
+            s.bind(("127.0.0.1", port))
+        except OSError:
+            return False
+    return True
+
+
+def next_px4_instance() -> int:
+    """A PX4 instance number whose UDP ports (onboard 14540/14580 + I, GCS 18570 + I) are
+    free now (0..PX4_MAX_INSTANCE)."""
+    with _lock:
+        for i in range(PX4_MAX_INSTANCE + 1):
+            if all(_udp_free(base + i) for base in (14540, 14580, 18570)):
+                return i
+    raise RuntimeError("no free PX4 instance")
 
 
 @contextlib.contextmanager
@@ -164,6 +195,14 @@ def flight_job(spec: SitlSpec, name: str, topology: str, out: str, ready: bool) 
     return asyncio.run(
         fly_on_sitl(scenario, SCENARIOS, sitl, Path(out), topology, timeout)  # type: ignore[arg-type]
     )
+
+
+def px4_flight_job(sitl: Px4Sitl, name: str, out: str) -> SitlFlight:
+    """Fly scenario `name` on a started PX4 SITL (handed over detached), once it is armable."""
+    sitl.wait_ready()
+    scenario = scenario_for(name)
+    timeout = scenario.duration_s + 30.0
+    return asyncio.run(fly_on_sitl(scenario, SCENARIOS, sitl, Path(out), timeout_s=timeout))
 
 
 def set_mode(conn: Any, mode: str) -> int:

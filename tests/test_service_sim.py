@@ -23,8 +23,20 @@ pytestmark = [pytest.mark.sim, pytest.mark.timeout(60)]
 SCENARIOS = Path(__file__).resolve().parents[1] / "config" / "scenarios"
 
 
-async def fly(personality: str, until_s: float, **sim: Any) -> tuple[Service, Any]:
+async def fly(
+    personality: str,
+    until_s: float,
+    control: dict[str, Any] | None = None,
+    start_heading_deg: float | None = None,
+    **sim: Any,
+) -> tuple[Service, Any]:
+    """The paper's route; the simulated vehicle boots facing the scenario's start heading
+    (west) or `start_heading_deg` (ENU degrees)."""
     sc = scenario_mod.load_scenario(SCENARIOS / "paper.yaml")
+    if start_heading_deg is not None:
+        raw = sc.model_dump()
+        raw["route"] = {**raw["route"], "start_heading_deg": start_heading_deg}
+        sc = scenario_mod.Scenario.model_validate(raw)
     server = sim_mavlink.SimServer.from_scenario(
         sc,
         SCENARIOS,
@@ -40,7 +52,11 @@ async def fly(personality: str, until_s: float, **sim: Any) -> tuple[Service, An
     cfg = parse_config(
         {
             "link": {"connection": f"udpout:127.0.0.1:{server.port}"},
-            "control": {"time_source": "sim", "auto_start": {"enabled": True}},
+            "control": {
+                "time_source": "sim",
+                "auto_start": {"enabled": True},
+                **(control or {}),
+            },
             "route": {
                 "source": "config",
                 "points": [goal.tolist()],
@@ -71,11 +87,38 @@ async def test_service_flies_towards_the_goal_in_lockstep(personality: str) -> N
     truth = server.truth
     xs = np.array([t.position_enu[0] for t in truth])
     last = np.array(truth[-1].position_enu)
-    # the route starts along the vehicle's heading (east in the simulator), turns and goes
-    # west towards the goal at about v_d = 1 m/s, H_d = 2 m above the ground
+    # the vehicle boots facing west (the scenario's start heading) and goes west towards the
+    # goal at about v_d = 1 m/s, H_d = 2 m above the ground
     assert last[0] < xs.max() - 3.0
     assert np.all(np.diff(xs[-200:]) < 0.0)
     assert 1.0 < last[2] < 6.0
+
+
+@pytest.mark.parametrize("personality", ["ardupilot", "px4"])
+async def test_vehicle_turns_to_face_the_route_before_flying_it(
+    personality: str, caplog: pytest.LogCaptureFixture
+) -> None:
+    """Taken over facing east with the goal west, the vehicle turns in place first: the
+    route does not begin with a loop out along the old heading. The control
+    (face_route_deg 180: start from the heading the vehicle has) swings east first."""
+    caplog.set_level("INFO", logger="companion")
+    _, server = await fly(personality, 30.0, start_heading_deg=0.0)
+    east = [t.position_enu[0] for t in server.truth if t.mode in ("GUIDED", "OFFBOARD")]
+    x0 = east[0]
+    assert "to face the route" in caplog.text
+    assert max(east) - x0 < 0.5
+    assert east[-1] < x0 - 5.0
+    assert abs(wrap(server.truth[-1].yaw_rad - math.pi)) < 0.5  # flying west
+
+    _, server = await fly(
+        personality, 30.0, control={"face_route_deg": 180.0}, start_heading_deg=0.0
+    )
+    east = [t.position_enu[0] for t in server.truth if t.mode in ("GUIDED", "OFFBOARD")]
+    assert max(east) - east[0] > 2.0
+
+
+def wrap(angle: float) -> float:
+    return (angle + math.pi) % (2.0 * math.pi) - math.pi
 
 
 async def test_pilot_mode_change_stops_the_service() -> None:

@@ -21,10 +21,19 @@ import numpy as np
 import pytest
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
-from companion.harness.sitl import Sitl, SitlFlight, free_udp_port, sitl_params, start_heading_deg
+from companion.harness.sitl import (
+    Px4Sitl,
+    Sitl,
+    SitlFlight,
+    free_udp_port,
+    sitl_params,
+    start_heading_deg,
+)
 from tests.sitl_support import (
     COPTER_MODE,
     LAUNCHER,
+    PX4_BUNDLE,
+    PX4_SKIP_REASON,
     SKIP_REASON,
     WIRED_PARAMS,
     PilotRun,
@@ -33,7 +42,9 @@ from tests.sitl_support import (
     flight_job,
     needs_sitl,
     next_instance,
+    next_px4_instance,
     pilot_job,
+    px4_flight_job,
     scenario_for,
 )
 
@@ -60,7 +71,7 @@ def runs(tmp_path_factory: pytest.TempPathFactory) -> Iterator[dict[str, Any]]:
     if LAUNCHER is None:
         pytest.skip(SKIP_REASON)
     tmp = tmp_path_factory.mktemp("sitl")
-    queue: list[tuple[str, Sitl, tuple[Any, ...]]] = []
+    queue: list[tuple[str, Sitl | Px4Sitl, tuple[Any, ...]]] = []
     for name, (scenario, topology, ready) in FLIGHTS.items():
         sitl = Sitl(
             LAUNCHER,
@@ -83,20 +94,30 @@ def runs(tmp_path_factory: pytest.TempPathFactory) -> Iterator[dict[str, Any]]:
             (claims_job,),
         ),
     )
+    if PX4_BUNDLE is not None:  # PX4 with SIH physics: the paper's flight, second in line
+        px4 = Px4Sitl(PX4_BUNDLE, workdir=tmp / "px4-paper")
+        queue.insert(1, ("px4-paper", px4, (px4_flight_job, "paper", str(tmp / "px4-paper"))))
     results: dict[str, Any] = {}
-    started: list[Sitl] = []
+    started: list[Sitl | Px4Sitl] = []
     pool = multiprocessing.get_context("spawn").Pool(MAX_PARALLEL, maxtasksperchild=1)
     try:
         running: dict[str, Any] = {}
         while queue or running:
             while queue and len(running) < MAX_PARALLEL:
                 name, sitl, (fn, *args) = queue.pop(0)
-                sitl.instance = next_instance()
-                sitl.port = free_udp_port()
+                if isinstance(sitl, Px4Sitl):
+                    sitl.instance = next_px4_instance()
+                else:
+                    sitl.instance = next_instance()
+                    sitl.port = free_udp_port()
                 started.append(sitl)
                 sitl.start()
                 sitl.wait_heartbeat(60.0)
-                spec = SitlSpec(str(sitl.launcher), sitl.instance, sitl.port, 1.0, sitl.fast_ekf)
+                spec: Any = (
+                    sitl.detached()
+                    if isinstance(sitl, Px4Sitl)
+                    else SitlSpec(str(sitl.launcher), sitl.instance, sitl.port, 1.0, sitl.fast_ekf)
+                )
                 running[name] = (pool.apply_async(fn, (spec, *args)), sitl)
             time.sleep(0.5)
             for name, (res, sitl) in list(running.items()):
@@ -136,16 +157,16 @@ def _figures(flight: SitlFlight) -> str:
     return ", ".join(f"{k} {m.get(k, float('nan')):.3f}" for k in keys)
 
 
-def assert_flight(flight: SitlFlight) -> None:
-    """Goal reached, clearance >= D_min, |H - H_d| <= 0.3 m once settled, |phi_d| <= phi_max,
-    all from the pose SITL reported, placed in the scenario's world."""
+def assert_flight(flight: SitlFlight, height: bool = True) -> None:
+    """Goal reached, clearance >= D_min, |H - H_d| <= 0.3 m once settled (with `height`),
+    |phi_d| <= phi_max, all from the pose SITL reported, placed in the scenario's world."""
     m = flight.metrics
     assert m, "the service never took over"
-    why = f"{flight.scenario.name}: {_figures(flight)}; events {flight.statustexts}"
+    why = f"{flight.scenario.name}: {_figures(flight)}; events {flight.events}"
     assert flight.finished and m["reached_goal"], why
     assert m["collisions"] == 0, why
     assert m["min_clearance_m"] >= flight.scenario.planner.d_min_m, why
-    assert m["max_height_error_m"] <= SETTLED_HEIGHT_ERROR_M, why
+    assert not height or m["max_height_error_m"] <= SETTLED_HEIGHT_ERROR_M, why
     assert m["max_abs_phi_d_rad"] <= flight.scenario.planner.phi_max_rad + 1e-9, why
     assert len(flight.track) > 100, "too few SITL positions to judge the flight"
 
@@ -164,6 +185,21 @@ def test_flight_with_sensors_on_the_companion(runs: dict[str, Any], name: str) -
     flight: SitlFlight = _get(runs, name)
     assert flight.topology == "companion"
     assert_flight(flight)
+
+
+@pytest.mark.skipif(PX4_BUNDLE is None, reason=PX4_SKIP_REASON)
+def test_flight_on_px4(runs: dict[str, Any]) -> None:
+    """The paper's scenario on PX4 with SIH physics: auto start (arm, AUTO.TAKEOFF, setpoints
+    streamed, OFFBOARD), a turn to face the route (PX4 boots facing north, the route goes
+    west), the route flown to the goal."""
+    flight: SitlFlight = _get(runs, "px4-paper")
+    m = flight.metrics
+    print(f"px4-paper: {_figures(flight)}, on route {m.get('max_height_error_route_m')}")
+    assert any("to face the route" in t for t in flight.statustexts), flight.statustexts
+    # PX4 sinks 0.4-0.5 m (its reported altitude) when it stops at the goal, and recovers
+    # over seconds: the settled bound is checked while the route is flown
+    assert m["max_height_error_route_m"] <= SETTLED_HEIGHT_ERROR_M, _figures(flight)
+    assert_flight(flight, height=False)
 
 
 def test_sensors_wired_to_the_autopilot_reach_the_planner(runs: dict[str, Any]) -> None:

@@ -38,7 +38,19 @@ def _parser() -> argparse.ArgumentParser:
     sitl.add_argument(
         "--sensors", type=Path, metavar="FILE", help="sensor table replacing the scenario's"
     )
-    sitl.add_argument("--instance", type=int, default=0, help="SITL instance (TCP 5762+10*I)")
+    sitl.add_argument(
+        "--autopilot",
+        choices=["arducopter", "px4"],
+        default="arducopter",
+        help="which SITL: ../shared/sitl/arducopter-sitl (default) or PX4 with SIH physics "
+        "(../shared/sitl/px4/px4-sitl)",
+    )
+    sitl.add_argument(
+        "--instance",
+        type=int,
+        default=0,
+        help="SITL instance (ArduCopter: TCP 5762+10*I; PX4: 0-9, UDP 14540+I)",
+    )
     sitl.add_argument("--speedup", type=float, default=1.0, help="SITL speed-up (1)")
     sitl.add_argument("--default-ekf", action="store_true", help="EKF3 as shipped (no --fast-ekf)")
     sitl.add_argument("--out", type=Path, default=Path("out/sitl"), help="output directory")
@@ -63,6 +75,7 @@ def main(argv: list[str] | None = None) -> int:
             args.speedup,
             not args.default_ekf,
             args.sensors,
+            autopilot=args.autopilot,
         )
     except ValueError as exc:  # ScenarioError and config validation: say what is wrong
         print(f"error: {exc}", file=sys.stderr)

@@ -1,9 +1,12 @@
-"""A scenario flown by the companion service against the real ArduCopter SITL.
+"""A scenario flown by the companion service against a real autopilot's SITL.
 
 Three parts, all on 127.0.0.1:
-- the SITL (`../shared/sitl/arducopter-sitl`, started here in its own process group): its
-  MAVLink stream (serial0) goes to the companion's UDP port; serial1 (TCP 5762 + 10 I) is
-  left to a ground station; the sensor bridge uses serial2 (TCP 5763 + 10 I);
+- the SITL, started here in its own process group. ArduCopter (`Sitl`,
+  `../shared/sitl/arducopter-sitl`): its MAVLink stream (serial0) goes to the companion's UDP
+  port; serial1 (TCP 5762 + 10 I) is left to a ground station; the sensor bridge uses
+  serial2 (TCP 5763 + 10 I). PX4 with SIH physics (`Px4Sitl`, `../shared/sitl/px4/`): its
+  onboard link sends to UDP 14540 + I, where the companion listens; the bridge gets a MAVLink
+  instance of its own, started once PX4 runs;
 - the sensor bridge (`companion.sim.mavlink.bridge`), ray-casting the scenario's world at the pose
   SITL reports. Topology `companion`: it sends DISTANCE_SENSOR straight to the companion as
   ArduPilot would. Topology `autopilot`: it feeds SITL's MAVLink rangefinders (RNGFNDn_TYPE
@@ -28,8 +31,10 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import dataclasses
 import math
 import os
+import shutil
 import signal
 import socket
 import subprocess
@@ -39,7 +44,7 @@ import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Literal, TextIO
+from typing import Any, Literal, Self, TextIO
 
 import numpy as np
 import yaml
@@ -77,7 +82,7 @@ GOAL_RADIUS_M = 0.5
 SETTLE_AFTER_FINISH_S = 5.0
 """After the route is done the vehicle holds at the goal; the flight goes on this long so
 that `reached_goal` is judged on where SITL's vehicle got to, not on its lag at the last
-planner cycle."""
+planner cycle. PX4 takes longer (`Px4Sitl.settle_after_finish_s`)."""
 
 
 def repo_root() -> Path:
@@ -91,6 +96,46 @@ def find_sitl(root: Path | None = None) -> Path | None:
     if launcher.is_file() and (base / "arducopter").is_file():
         return launcher.resolve()
     return None
+
+
+PX4_DIR = SITL_DIR / "px4"
+"""The PX4 SITL bundle (SIH physics), relative to the repository root."""
+PX4_HOME = (47.397742, 8.545594, 489.4)
+"""SIH's default home (lat, lon deg, alt m AMSL)."""
+PX4_MAX_INSTANCE = 9
+"""PX4 sends to 14540 + I only up to I = 9 (14549 for every instance above)."""
+
+
+def find_px4(root: Path | None = None) -> Path | None:
+    """The PX4 bundle `../shared/sitl/px4/` when its launcher and binary exist, else None."""
+    base = (root or repo_root()) / PX4_DIR
+    if (base / "px4-sitl").is_file() and (base / "bin" / "px4").is_file():
+        return base.resolve()
+    return None
+
+
+def runnable_px4_bundle(src: Path, dest: Path) -> Path:
+    """A copy of the PX4 bundle at `dest` (made once) whose module clients run.
+
+    PX4's rcS calls `px4-param`, `px4-mavlink`, ... which are symlinks to `bin/px4`; a copy
+    of the bundle that lost its links (an archive unpacked without them: 3-byte files
+    reading "px4") fails every one of those calls with "Permission denied" and PX4 never
+    gets its airframe. Such files become links again here; the original is left as it is.
+    """
+    if not (dest / "bin" / "px4").is_file():
+        tmp = dest.with_name(dest.name + ".part")
+        shutil.rmtree(tmp, ignore_errors=True)
+        shutil.copytree(src, tmp, symlinks=True)
+        for path in (tmp / "bin").glob("px4-*"):
+            flattened = not path.is_symlink() and path.stat().st_size <= 8
+            if flattened and path.read_bytes().strip() == b"px4":
+                path.unlink()
+                path.symlink_to("px4")
+        for path in tmp.rglob("*"):  # the original may be read-only
+            if not path.is_symlink():
+                path.chmod(path.stat().st_mode | 0o200)
+        tmp.rename(dest)
+    return dest
 
 
 def free_udp_port() -> int:
@@ -117,66 +162,23 @@ class SitlError(RuntimeError):
     """SITL did not start or answer."""
 
 
-@dataclass
-class Sitl:
-    """One ArduCopter SITL process (its own process group; stop() kills the group).
+class _SitlProcess:
+    """What both SITLs share: a launcher run in its own process group, its console in
+    workdir/sitl.out, and the UDP port the companion listens on (`port`)."""
 
-    instance: SITL's -I (serial1 TCP 5762 + 10 I, serial2 5763 + 10 I); give every SITL
-    running at once its own. port: the UDP port its MAVLink stream (serial0) is sent to.
-    params: extra parameters (name -> value) loaded at boot with the default ones.
-    """
-
-    launcher: Path
-    instance: int
+    label = "SITL"
+    settle_after_finish_s = SETTLE_AFTER_FINISH_S
     port: int
-    speedup: float = 1.0
-    fast_ekf: bool = True
-    params: dict[str, float] = field(default_factory=dict)
-    workdir: Path | None = None
-    heading_deg: float | None = None
-    """Initial heading, degrees clockwise from north (the launcher's default home, CMAC)."""
-    proc: subprocess.Popen[bytes] | None = None
-    started_at: float = 0.0
-    _log: TextIO | None = None
+    workdir: Path | None
+    proc: subprocess.Popen[bytes] | None
+    started_at: float
+    _log: TextIO | None
 
-    @property
-    def gcs_port(self) -> int:
-        """TCP port of SERIAL1 (a ground station)."""
-        return 5762 + 10 * self.instance
-
-    @property
-    def bridge_port(self) -> int:
-        """TCP port of SERIAL2 (the sensor bridge)."""
-        return 5763 + 10 * self.instance
-
-    def command(self) -> list[str]:
-        cmd = [
-            str(self.launcher),
-            "--instance",
-            str(self.instance),
-            "--port",
-            str(self.port),
-            "--speedup",
-            f"{self.speedup:g}",
-        ]
-        if self.workdir is not None:
-            cmd += ["--workdir", str(self.workdir)]
-        if self.heading_deg is not None:
-            cmd += ["--home", f"{CMAC[0]},{CMAC[1]},{CMAC[2]},{self.heading_deg:g}"]
-        if self.fast_ekf:
-            cmd.append("--fast-ekf")
-        for name, value in self.params.items():
-            cmd += ["--param", f"{name}={value:g}"]
-        return cmd
-
-    def start(self) -> None:
-        if self.workdir is None:
-            self.workdir = Path(tempfile.mkdtemp(prefix=f"sitl-{self.instance}-"))
-        self.workdir = self.workdir.resolve()  # the launcher changes into it
-        self.workdir.mkdir(parents=True, exist_ok=True)
+    def _spawn(self, cmd: list[str]) -> None:
+        assert self.workdir is not None
         self._log = (self.workdir / "sitl.out").open("w", encoding="utf-8")
         self.proc = subprocess.Popen(
-            self.command(),
+            cmd,
             stdout=self._log,
             stderr=subprocess.STDOUT,
             stdin=subprocess.DEVNULL,
@@ -206,9 +208,9 @@ class Sitl:
         return (self.workdir / "sitl.out").read_text(encoding="utf-8", errors="replace")
 
     def wait_heartbeat(self, timeout_s: float = 60.0) -> float:
-        """Block until a HEARTBEAT arrives on the serial0 UDP port; seconds since start.
-
-        Binds the port for the wait only: the companion takes it afterwards.
+        """Block until a HEARTBEAT of the autopilot (component 1) arrives on `port`;
+        seconds since start. Binds the port for the wait only: the companion takes it
+        afterwards.
         """
         mav = mavlink.MAVLink(None)
         mav.robust_parsing = True
@@ -219,18 +221,109 @@ class Sitl:
             s.settimeout(0.5)
             while time.monotonic() < deadline:
                 if self.proc is not None and self.proc.poll() is not None:
-                    raise SitlError(f"SITL exited ({self.proc.returncode}): {self.output()[-400:]}")
+                    raise SitlError(
+                        f"{self.label} exited ({self.proc.returncode}): {self.output()[-400:]}"
+                    )
                 try:
                     data = s.recv(65536)
                 except TimeoutError:
                     panic = [ln for ln in self.output().splitlines() if "PANIC" in ln]
                     if panic:  # SITL stops there without exiting
-                        raise SitlError(f"SITL failed to start: {panic[0]}") from None
+                        raise SitlError(f"{self.label} failed to start: {panic[0]}") from None
                     continue
                 for msg in mav.parse_buffer(data) or []:
                     if msg.get_type() == "HEARTBEAT" and msg.get_srcComponent() == 1:
                         return time.monotonic() - self.started_at
-        raise SitlError(f"no SITL heartbeat on udp 127.0.0.1:{self.port} in {timeout_s:.0f} s")
+        raise SitlError(
+            f"no {self.label} heartbeat on udp 127.0.0.1:{self.port} in {timeout_s:.0f} s"
+        )
+
+    @property
+    def system_id(self) -> int:
+        """The autopilot's MAVLink system id."""
+        return 1
+
+    def bridge_link(self) -> str:
+        """The pymavlink connection string the sensor bridge reaches the autopilot with."""
+        raise NotImplementedError
+
+    def detached(self) -> _SitlProcess:
+        """A copy without the process handle, to hand to another process (picklable)."""
+        return dataclasses.replace(self, proc=None, _log=None)  # type: ignore[type-var]
+
+    def __enter__(self) -> Self:
+        self.start()
+        return self
+
+    def start(self) -> None:
+        raise NotImplementedError
+
+    def __exit__(self, *exc: object) -> None:
+        self.stop()
+
+
+@dataclass
+class Sitl(_SitlProcess):
+    """One ArduCopter SITL process (its own process group; stop() kills the group).
+
+    instance: SITL's -I (serial1 TCP 5762 + 10 I, serial2 5763 + 10 I); give every SITL
+    running at once its own. port: the UDP port its MAVLink stream (serial0) is sent to.
+    params: extra parameters (name -> value) loaded at boot with the default ones.
+    """
+
+    launcher: Path
+    instance: int
+    port: int
+    speedup: float = 1.0
+    fast_ekf: bool = True
+    params: dict[str, float] = field(default_factory=dict)
+    workdir: Path | None = None
+    heading_deg: float | None = None
+    """Initial heading, degrees clockwise from north (the launcher's default home, CMAC)."""
+    proc: subprocess.Popen[bytes] | None = None
+    started_at: float = 0.0
+    _log: TextIO | None = None
+    label = "ArduCopter SITL"
+
+    @property
+    def gcs_port(self) -> int:
+        """TCP port of SERIAL1 (a ground station)."""
+        return 5762 + 10 * self.instance
+
+    @property
+    def bridge_port(self) -> int:
+        """TCP port of SERIAL2 (the sensor bridge)."""
+        return 5763 + 10 * self.instance
+
+    def bridge_link(self) -> str:
+        return f"tcp:127.0.0.1:{self.bridge_port}"
+
+    def command(self) -> list[str]:
+        cmd = [
+            str(self.launcher),
+            "--instance",
+            str(self.instance),
+            "--port",
+            str(self.port),
+            "--speedup",
+            f"{self.speedup:g}",
+        ]
+        if self.workdir is not None:
+            cmd += ["--workdir", str(self.workdir)]
+        if self.heading_deg is not None:
+            cmd += ["--home", f"{CMAC[0]},{CMAC[1]},{CMAC[2]},{self.heading_deg:g}"]
+        if self.fast_ekf:
+            cmd.append("--fast-ekf")
+        for name, value in self.params.items():
+            cmd += ["--param", f"{name}={value:g}"]
+        return cmd
+
+    def start(self) -> None:
+        if self.workdir is None:
+            self.workdir = Path(tempfile.mkdtemp(prefix=f"sitl-{self.instance}-"))
+        self.workdir = self.workdir.resolve()  # the launcher changes into it
+        self.workdir.mkdir(parents=True, exist_ok=True)
+        self._spawn(self.command())
 
     def wait_ready(self, timeout_s: float = 120.0, port: int | None = None) -> float:
         """Block until SITL can fly GUIDED: a 3D GPS fix and an estimator with an absolute
@@ -296,12 +389,125 @@ class Sitl:
             conn.close()
         raise SitlError(f"SITL not ready to fly in {timeout_s:.0f} s (GPS fix, EKF position)")
 
-    def __enter__(self) -> Sitl:
-        self.start()
-        return self
 
-    def __exit__(self, *exc: object) -> None:
-        self.stop()
+@dataclass
+class Px4Sitl(_SitlProcess):
+    """One PX4 SITL process with SIH physics (`../shared/sitl/px4/px4-sitl`, its own process
+    group; stop() kills the group).
+
+    instance: PX4's -i, 0..9 (its onboard link sends to UDP 14540 + I and listens on
+    14580 + I; one instance number per machine at a time). The bundle is copied into
+    workdir/bundle (`runnable_px4_bundle`) and run from there, parameters fresh, no ULog.
+    bridge_ports: (PX4 listens, PX4 sends to) of the MAVLink instance the sensor bridge gets,
+    free UDP ports by default.
+    """
+
+    bundle: Path
+    instance: int = 0
+    speedup: float = 1.0
+    workdir: Path | None = None
+    home: tuple[float, float, float] = PX4_HOME
+    bridge_ports: tuple[int, int] | None = None
+    proc: subprocess.Popen[bytes] | None = None
+    started_at: float = 0.0
+    _log: TextIO | None = None
+    _bridge_started: bool = False
+    label = "PX4 SITL"
+    settle_after_finish_s = 10.0
+    """PX4 overshoots a stop by about 0.5 m and comes back at under 0.1 m/s (its reported
+    position, SIH): the goal is judged over 10 s."""
+
+    def __post_init__(self) -> None:
+        if not 0 <= self.instance <= PX4_MAX_INSTANCE:
+            raise ValueError(f"PX4 instance {self.instance} outside 0..{PX4_MAX_INSTANCE}")
+
+    @property
+    def port(self) -> int:  # type: ignore[override]
+        """The UDP port PX4's onboard link sends to (the companion listens there)."""
+        return 14540 + self.instance
+
+    @property
+    def system_id(self) -> int:
+        """PX4 SITL's MAV_SYS_ID is instance + 1."""
+        return self.instance + 1
+
+    def command(self, bundle: Path) -> list[str]:
+        assert self.workdir is not None
+        return [
+            str(bundle / "px4-sitl"),
+            "--instance",
+            str(self.instance),
+            "--workdir",
+            str(self.workdir / "px4"),
+            "--speedup",
+            f"{self.speedup:g}",
+            "--home",
+            ",".join(f"{v:.7f}" for v in self.home),
+            "--fresh",
+            "--no-log",
+        ]
+
+    def start(self) -> None:
+        if self.workdir is None:
+            self.workdir = Path(tempfile.mkdtemp(prefix=f"px4-{self.instance}-"))
+        self.workdir = self.workdir.resolve()
+        self.workdir.mkdir(parents=True, exist_ok=True)
+        bundle = runnable_px4_bundle(self.bundle, self.workdir / "bundle")
+        if self.bridge_ports is None:
+            self.bridge_ports = (free_udp_port(), free_udp_port())
+        self._bridge_started = False
+        self._spawn(self.command(bundle))
+
+    def wait_ready(self, timeout_s: float = 60.0) -> float:
+        """Block until PX4 says it is armable ("Ready for takeoff!" on its console: EKF2
+        aligned, about 4 s after start); seconds since start."""
+        deadline = time.monotonic() + timeout_s
+        while time.monotonic() < deadline:
+            if self.proc is not None and self.proc.poll() is not None:
+                raise SitlError(f"PX4 exited ({self.proc.returncode}): {self.output()[-400:]}")
+            if "Ready for takeoff" in self.output():
+                return time.monotonic() - self.started_at
+            time.sleep(0.2)
+        raise SitlError(f"PX4 not ready for take-off in {timeout_s:.0f} s")
+
+    def bridge_link(self) -> str:
+        """Starts (once) a MAVLink instance for the bridge in the running PX4 (`mavlink start
+        -u LISTEN -o SEND -m onboard`, through PX4's module client) and returns where the
+        bridge listens. The companion keeps the onboard link 14540 + I to itself."""
+        assert self.workdir is not None and self.bridge_ports is not None
+        listen, send = self.bridge_ports
+        if not self._bridge_started:
+            client = self.workdir / "bundle" / "bin" / "px4-mavlink"
+            done = subprocess.run(
+                [
+                    str(client),
+                    "--instance",
+                    str(self.instance),
+                    "start",
+                    "-u",
+                    str(listen),
+                    "-o",
+                    str(send),
+                    "-m",
+                    "onboard",
+                    "-r",
+                    "400000",
+                ],
+                cwd=self.workdir / "px4",
+                capture_output=True,
+                text=True,
+                timeout=10.0,
+                check=False,
+            )
+            if done.returncode != 0:
+                raise SitlError(
+                    f"PX4 refused the bridge's MAVLink instance: {done.stdout}{done.stderr}"
+                )
+            self._bridge_started = True
+        return f"udpin:127.0.0.1:{send}"
+
+
+AnySitl = Sitl | Px4Sitl
 
 
 # --- topology (a): sensors wired to the flight controller ----------------------------------
@@ -388,6 +594,7 @@ class TapLink(UdpInLink):
     """UdpInLink that records what the service sends and the autopilot heartbeats it gets.
 
     sent: (monotonic s, message type, command or custom_mode or None);
+    texts: the STATUSTEXTs the service sent, in order;
     heartbeats: (monotonic s, custom_mode, armed) of the autopilot (component 1).
     """
 
@@ -398,6 +605,7 @@ class TapLink(UdpInLink):
         self._out.robust_parsing = True
         self._in.robust_parsing = True
         self.sent: list[tuple[float, str, int | None]] = []
+        self.texts: list[str] = []
         self.heartbeats: list[tuple[float, int, bool]] = []
 
     def send(self, data: bytes) -> None:
@@ -409,6 +617,8 @@ class TapLink(UdpInLink):
                 detail = int(msg.command)
             elif kind == "SET_MODE":
                 detail = int(msg.custom_mode)
+            elif kind == "STATUSTEXT":
+                self.texts.append(str(msg.text))
             self.sent.append((now, kind, detail))
         super().send(data)
 
@@ -439,6 +649,9 @@ class SitlFlight:
     heartbeats: list[tuple[float, int, bool]]
     log_path: Path | None
     statustexts: list[str]
+    """What the service told the pilot (STATUSTEXT), in order."""
+    events: list[str]
+    """The planner's events after the take-over."""
     wall_s: float
 
 
@@ -496,13 +709,13 @@ def home_height(scenario: Scenario, world: World, step_m: float = 1.0) -> float:
 
 
 class Flight:
-    """Service + bridge against a started Sitl; `run()` flies until the route is done."""
+    """Service + bridge against a started SITL; `run()` flies until the route is done."""
 
     def __init__(
         self,
         scenario: Scenario,
         base_dir: Path,
-        sitl: Sitl,
+        sitl: AnySitl,
         out_dir: Path,
         topology: Topology = "companion",
         service_extra: dict[str, Any] | None = None,
@@ -515,6 +728,8 @@ class Flight:
         start = scenario.start(self.world)
         self.anchor = np.array([start[0], start[1], home_height(scenario, self.world)])
         extra = dict(service_extra or {})
+        if topology == "autopilot" and isinstance(sitl, Px4Sitl):
+            raise ValueError("sensors wired to the autopilot: ArduCopter only (PX4 not done)")
         if topology == "autopilot":
             wired = wire_to_autopilot(scenario.sensors)
             sensors = wired.companion_sensors
@@ -538,11 +753,11 @@ class Flight:
         # data, so it is fed at 10 Hz of simulated time.
         rate = 10.0 * max(sitl.speedup, 1.0) if topology == "autopilot" else 10.0
         bridge_cfg = BridgeConfig(
-            connect=f"tcp:127.0.0.1:{sitl.bridge_port}",
+            connect=sitl.bridge_link(),
             send_to=topology,
             companion_address=f"127.0.0.1:{sitl.port}" if topology == "companion" else None,
             rate_hz=rate,
-            system_id=1,
+            system_id=sitl.system_id,
             component_id=1 if topology == "companion" else 158,
             anchor_xy=(float(self.anchor[0]), float(self.anchor[1])),
             anchor_z=float(self.anchor[2]),
@@ -626,6 +841,15 @@ class Flight:
                 if d is not None:
                     m["goal_distance_m"] = d
                     m["reached_goal"] = d < GOAL_RADIUS_M
+                done = np.flatnonzero(log.finished)
+                if len(done):  # the height error while the route was flown, without the stop
+                    t_done = float(log.t_s[done[0]]) - engaged_at
+                    err = np.abs(result.trace["height"] - self.scenario.planner.h_d_m)
+                    settled = np.flatnonzero(err <= metrics_mod.SETTLE_BAND_M)
+                    on_route = result.trace["t"] <= t_done
+                    if len(settled):
+                        on_route[: settled[0]] = False
+                    m["max_height_error_route_m"] = float(np.max(err[on_route], initial=0.0))
                 m["phi_max_rad"] = self.scenario.planner.phi_max_rad
                 m["d_min_m"] = self.scenario.planner.d_min_m
         texts = [e for _, e in result.events] if result is not None else []
@@ -641,6 +865,7 @@ class Flight:
             list(self.link.sent),
             list(self.link.heartbeats),
             logs[-1] if logs else None,
+            list(self.link.texts),
             texts,
             wall_s,
         )
@@ -649,7 +874,7 @@ class Flight:
 async def fly_on_sitl(
     scenario: Scenario,
     base_dir: Path,
-    sitl: Sitl,
+    sitl: AnySitl,
     out_dir: Path,
     topology: Topology = "companion",
     timeout_s: float | None = None,
@@ -660,7 +885,7 @@ async def fly_on_sitl(
     await flight.start()
     try:
         if await flight.wait(timeout_s if timeout_s is not None else scenario.duration_s + 90.0):
-            await asyncio.sleep(SETTLE_AFTER_FINISH_S)
+            await asyncio.sleep(sitl.settle_after_finish_s)
     finally:
         await flight.stop()
     return flight.outcome(time.monotonic() - t0)
@@ -688,29 +913,44 @@ def run_cli(
     fast_ekf: bool = True,
     sensors_path: Path | None = None,
     stream: TextIO = sys.stdout,
+    autopilot: Literal["arducopter", "px4"] = "arducopter",
 ) -> int:
     """`python -m companion.harness sitl`: fly a scenario on the real SITL, print the metrics table.
     sensors_path: a sensor table (YAML list) replacing the scenario's."""
-    launcher = find_sitl()
-    if launcher is None:
-        stream.write(f"error: no SITL at {SITL_DIR}/arducopter-sitl next to the repository\n")
-        return 2
     scenario = load_scenario(scenario_path)
     if sensors_path is not None:
         with sensors_path.open(encoding="utf-8") as f:
             table = yaml.safe_load(f)
         scenario = Scenario.model_validate({**scenario.model_dump(), "sensors": table})
+    sitl: AnySitl
+    if autopilot == "px4":
+        bundle = find_px4()
+        if bundle is None:
+            stream.write(f"error: no PX4 SITL at {PX4_DIR}/px4-sitl next to the repository\n")
+            return 2
+        if topology == "autopilot":
+            stream.write("error: --sensors-to autopilot is done for ArduCopter only\n")
+            return 2
+        if not 0 <= instance <= PX4_MAX_INSTANCE:
+            stream.write(f"error: PX4 --instance must be 0..{PX4_MAX_INSTANCE}\n")
+            return 2
+        sitl = Px4Sitl(bundle, instance, speedup=speedup, workdir=out_dir / "sitl")
+    else:
+        launcher = find_sitl()
+        if launcher is None:
+            stream.write(f"error: no SITL at {SITL_DIR}/arducopter-sitl next to the repository\n")
+            return 2
+        sitl = Sitl(
+            launcher,
+            instance,
+            free_udp_port(),
+            speedup=speedup,
+            fast_ekf=fast_ekf,
+            params=sitl_params(scenario, topology),
+            workdir=out_dir / "sitl",
+            heading_deg=start_heading_deg(scenario),
+        )
     out_dir.mkdir(parents=True, exist_ok=True)
-    sitl = Sitl(
-        launcher,
-        instance,
-        free_udp_port(),
-        speedup=speedup,
-        fast_ekf=fast_ekf,
-        params=sitl_params(scenario, topology),
-        workdir=out_dir / "sitl",
-        heading_deg=start_heading_deg(scenario),
-    )
     try:
         with sitl:
             sitl.wait_heartbeat()
@@ -719,15 +959,28 @@ def run_cli(
                 fly_on_sitl(scenario, scenario_path.parent, sitl, out_dir, topology)
             )
     except SitlError as exc:
-        stream.write(f"error: {exc} (SITL output: {sitl.workdir}/sitl.out)\n")
+        stream.write(f"error: {exc} ({sitl.label} output: {sitl.workdir}/sitl.out)\n")
         return 1
+    how = "SIH" if isinstance(sitl, Px4Sitl) else ("EKF3" if not fast_ekf else "fast EKF")
     stream.write(
-        f"scenario {scenario.name} on ArduCopter SITL (speed-up {speedup:g}, "
-        f"{'EKF3' if not fast_ekf else 'fast EKF'}, sensors to the {topology}); ready after "
-        f"{boot:.1f} s, flight {flown.wall_s:.0f} s wall\n"
+        f"scenario {scenario.name} on {sitl.label} (speed-up {speedup:g}, {how}, sensors to "
+        f"the {topology}); ready after {boot:.1f} s, flight {flown.wall_s:.0f} s wall\n"
     )
-    if flown.metrics:
+    if flown.metrics and flown.result is not None:
+        import importlib.util
+
+        from companion.harness.runner import write_outputs
+
+        plots = importlib.util.find_spec("matplotlib") is not None
+        world = World.from_config(scenario.world, scenario_path.parent)
+        write_outputs(out_dir, scenario, world, flown.result, flown.metrics, plots=plots)
         stream.write(metrics_mod.format_table(flown.metrics) + "\n")
+        if "max_height_error_route_m" in flown.metrics:
+            stream.write(
+                f"max |H - H_d| (settled) until the route was done: "
+                f"{flown.metrics['max_height_error_route_m']:.3f} m (the row above includes "
+                f"the {sitl.settle_after_finish_s:g} s held at the goal)\n"
+            )
         if "goal_distance_m" in flown.metrics:
             stream.write(
                 f"closest to the goal after the route was done: "

@@ -57,9 +57,10 @@ PROBLEM_PREFIXES = (
 )
 """Counters whose growth is logged as a warning (housekeeping, every 10 s)."""
 
-WARN_ONCE = ("conn.other_component", "conn.other_system")
+WARN_ONCE = ("conn.other_component", "conn.other_system", "codec.unknown_msgid")
 """Problems that can be a steady, harmless stream (a router sending the companion's
-neighbours' messages back): their first growth is a warning, later growth debug."""
+neighbours' messages back; messages of a newer dialect than pymavlink's, which PX4 v1.18
+SITL sends at about 24 a second): their first growth is a warning, later growth debug."""
 
 
 def is_problem(name: str) -> bool:

@@ -226,6 +226,8 @@ class ControlCycle:
             return "planner error"
         if host.building:
             return "planner being built"
+        if host.facing is not None:
+            return "turning to face the route"
         if host.route_finished.is_set():
             return "route complete"
         return ""

@@ -3,7 +3,8 @@
 Owns the local frame (ENU metres at home, frozen at the first take-over), the route's base
 points in it, the planner (built on engage, rebuilt on a restart far from X_d), the shift that
 keeps the planner's frame continuous through accepted position jumps, progress along the base
-points, the route's end, the hold point, and the planner's parameters at run time, H_d among
+points, the turn to face the route before it starts, the route's end, the hold point, and
+the planner's parameters at run time, H_d among
 them (the config's values, changed only by `retune`, validated by the config's own rules,
 passed to every planner built).
 
@@ -77,6 +78,23 @@ def default_planner_factory(
 
     planner: PlannerLike = Planner(params, sensors, route, start_position_enu)
     return planner
+
+
+FACE_DONE_RAD = math.radians(10.0)
+"""The turn to face the route ends once the heading is this close to the first leg's."""
+FACE_TIMEOUT_S = 30.0
+"""A turn that has not got there by then ends anyway: the route starts from the heading the
+vehicle has (a yaw the autopilot does not follow must not keep it waiting for ever)."""
+
+
+@dataclass
+class Facing:
+    """A turn in place before the route: hold `position_enu` (service frame) with the yaw
+    `bearing_rad` (ENU) until the vehicle faces it."""
+
+    position_enu: FloatArray
+    bearing_rad: float
+    since: float
 
 
 @dataclass(frozen=True, slots=True)
@@ -160,6 +178,8 @@ class PlannerHost:
         self.route_finished = asyncio.Event()
         self._finish_handled = False
         self.hold: HoldPoint | None = None
+        self.facing: Facing | None = None
+        """Set while the vehicle turns in place to face the route before it starts."""
         self.planner_failed = False
         self.building = False
         self._build_gen = 0
@@ -288,7 +308,9 @@ class PlannerHost:
     # --- engage and build ------------------------------------------------------------------
 
     def engage(self, now: float) -> bool:
-        """Build the planner from the vehicle's position; False if there is nothing to fly."""
+        """Build the planner from the vehicle's position (after a turn to face the route,
+        `_face_route`); False if there is nothing to fly."""
+        self.facing = None
         self.update_frame()
         state = self.vehicle_state()
         if state is None or self.route_source_points is None:
@@ -306,7 +328,52 @@ class PlannerHost:
                         "route": self.route_source_points,
                     }
                 )
-        self._start_planner(self._to_planner(state))
+        state = self._to_planner(state)
+        if not self._face_route(state, now):
+            self._start_planner(state)
+        return True
+
+    def _face_route(self, state: VehicleState, now: float) -> bool:
+        """Begin a turn in place towards the first base point still to fly when the heading
+        is off its bearing by more than `control.face_route_deg`; True if it began."""
+        pts = self.route_source_points
+        assert pts is not None
+        here = state.position_enu[:2]
+        ahead = pts[self.next_point :]
+        gaps = np.hypot(*(ahead - here).T) if len(ahead) else np.zeros(0)
+        ahead = ahead[gaps >= MIN_BASE_POINT_SPACING_M]
+        if not len(ahead):
+            return False
+        bearing = math.atan2(*(ahead[0] - here)[::-1])
+        off = abs(wrap_pi(bearing - state.yaw_rad))
+        if off <= math.radians(self.cfg.control.face_route_deg):
+            return False
+        self.planner = None
+        self.facing = Facing(state.position_enu + self.shift, bearing, now)
+        self.hold = HoldPoint(self.facing.position_enu, bearing)
+        self._say(f"turning {math.degrees(off):.0f} deg to face the route", Severity.INFO)
+        return True
+
+    def _faced(self, state: VehicleState, now: float) -> bool:
+        """While turning to face the route: keep the hold's yaw on the bearing; True (and
+        the turn over) once the heading is within FACE_DONE_RAD of it or FACE_TIMEOUT_S
+        has passed."""
+        f = self.facing
+        assert f is not None
+        off = abs(wrap_pi(f.bearing_rad - state.yaw_rad))
+        if off > FACE_DONE_RAD and now - f.since < FACE_TIMEOUT_S:
+            # a hold restarted meanwhile (a position jump) keeps turning from where it is
+            if self.hold is None or self.hold.yaw_rad != f.bearing_rad:
+                self.hold = HoldPoint(state.position_enu + self.shift, f.bearing_rad)
+            return False
+        if off > FACE_DONE_RAD:
+            self._say(
+                f"turn to the route not done in {FACE_TIMEOUT_S:.0f} s "
+                f"({math.degrees(off):.0f} deg off): starting from this heading",
+                Severity.WARNING,
+            )
+        self.facing = None
+        self.hold = None
         return True
 
     def _to_planner(self, state: VehicleState) -> VehicleState:
@@ -436,6 +503,10 @@ class PlannerHost:
         if estimate is None:
             return None
         state = self._to_planner(estimate)
+        if self.facing is not None:
+            if not self._faced(state, now):
+                return None  # the caller holds: at the turn's position, yaw on the bearing
+            self._start_planner(state)
         if self._rebuild_due and self.planner is not None:
             log.info("planner parameters changed: restarting the planner here")
             self._start_planner(state)
@@ -536,6 +607,7 @@ class PlannerHost:
 
 __all__ = [
     "MIN_BASE_POINT_SPACING_M",
+    "Facing",
     "HoldPoint",
     "PlannerFactory",
     "PlannerHost",
