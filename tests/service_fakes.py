@@ -49,7 +49,9 @@ def make_config(**sections: Any) -> ServiceConfig:
             "command_timeout_s": 0.3,
             "auto_id_listen_s": 0.3,
         },
-        "control": {"rate_hz": 20.0, "min_engage_height_m": 1.0},
+        # the fake autopilot faces north and the route goes east: no turn to face it here
+        # (tests/test_service_cycle.py turns)
+        "control": {"rate_hz": 20.0, "min_engage_height_m": 1.0, "face_route_deg": 180.0},
         "route": {"source": "config", "points": [[20.0, 0.0], [40.0, 0.0]]},
         "sensors": SENSORS,
         "failsafe": {"resume_after_s": 0.2},

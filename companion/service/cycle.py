@@ -301,6 +301,8 @@ class ControlCycle:
                 name=mode_name(kind, self.info.vehicle_type, hb.base_mode, hb.custom_mode),
             )
             self._mode_key, self._mode = key, mode
+        if not mode.armed:
+            self.host.note_on_ground()
         before = self.ownership.state
         events = self.ownership.update(mode, allow_engage=allow_engage)
         after = self.ownership.state

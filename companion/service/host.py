@@ -82,6 +82,11 @@ def default_planner_factory(
 
 FACE_DONE_RAD = math.radians(10.0)
 """The turn to face the route ends once the heading is this close to the first leg's."""
+FACE_CLEAR_D_MIN = 3.0
+"""No turn to face the route with an obstacle reading within this many D_min: a vehicle taken
+over while it was going round something (a restarted companion) keeps the heading that was
+taking it round as the route's start heading, instead of turning towards a base point whose
+straight line passes the obstacle."""
 FACE_TIMEOUT_S = 30.0
 """A turn that has not got there by then ends anyway: the route starts from the heading the
 vehicle has (a yaw the autopilot does not follow must not keep it waiting for ever)."""
@@ -180,6 +185,12 @@ class PlannerHost:
         self.hold: HoldPoint | None = None
         self.facing: Facing | None = None
         """Set while the vehicle turns in place to face the route before it starts."""
+        self._start_due = False
+        """Taken over: the next `step` turns to face the route or starts the planner."""
+        self._from_ground = False
+        """Seen disarmed since the last take-over: the next take-over is the first of a
+        flight, and may turn to face the route."""
+        self._may_face = False
         self.planner_failed = False
         self.building = False
         self._build_gen = 0
@@ -308,8 +319,9 @@ class PlannerHost:
     # --- engage and build ------------------------------------------------------------------
 
     def engage(self, now: float) -> bool:
-        """Build the planner from the vehicle's position (after a turn to face the route,
-        `_face_route`); False if there is nothing to fly."""
+        """Take over: the planner is built from the vehicle's position at the next `step` (the
+        first cycle with inputs good enough to fly), after a turn to face the route
+        (`_face_route`); False if there is nothing to fly."""
         self.facing = None
         self.update_frame()
         state = self.vehicle_state()
@@ -328,14 +340,22 @@ class PlannerHost:
                         "route": self.route_source_points,
                     }
                 )
-        state = self._to_planner(state)
-        if not self._face_route(state, now):
-            self._start_planner(state)
+        self.planner = None
+        self._start_due = True
+        self._may_face, self._from_ground = self._from_ground, False
         return True
 
-    def _face_route(self, state: VehicleState, now: float) -> bool:
-        """Begin a turn in place towards the first base point still to fly when the heading
-        is off its bearing by more than `control.face_route_deg`; True if it began."""
+    def note_on_ground(self) -> None:
+        """The vehicle is disarmed: the next take-over starts a flight (it may turn to face
+        the route; a take-over in mid-flight, a re-engage or a service started or restarted
+        with the vehicle armed, keeps the heading the vehicle has)."""
+        self._from_ground = True
+
+    def _face_route(self, state: VehicleState, ranges_m: FloatArray, now: float) -> bool:
+        """At the first take-over of a flight (`note_on_ground`): begin a turn in place
+        towards the first base point still to fly when the heading is off its bearing by more
+        than `control.face_route_deg` and no obstacle reading is within FACE_CLEAR_D_MIN *
+        D_min; True if it began."""
         pts = self.route_source_points
         assert pts is not None
         here = state.position_enu[:2]
@@ -347,6 +367,15 @@ class PlannerHost:
         bearing = math.atan2(*(ahead[0] - here)[::-1])
         off = abs(wrap_pi(bearing - state.yaw_rad))
         if off <= math.radians(self.cfg.control.face_route_deg):
+            return False
+        ranges = ranges_m[self.sensors.obstacle_index]
+        seen = ranges[np.isfinite(ranges) & (ranges > 0.0)]
+        if len(seen) and float(seen.min()) < FACE_CLEAR_D_MIN * self.params.d_min_m:
+            log.info(
+                "heading %.0f deg off the route, obstacle %.1f m away: no turn to face it",
+                math.degrees(off),
+                float(seen.min()),
+            )
             return False
         self.planner = None
         self.facing = Facing(state.position_enu + self.shift, bearing, now)
@@ -503,7 +532,12 @@ class PlannerHost:
         if estimate is None:
             return None
         state = self._to_planner(estimate)
-        if self.facing is not None:
+        if self._start_due:
+            self._start_due = False
+            if self._may_face and self._face_route(state, pairing.ranges_m, now):
+                return None  # the caller holds, turning
+            self._start_planner(state)
+        elif self.facing is not None:
             if not self._faced(state, now):
                 return None  # the caller holds: at the turn's position, yaw on the bearing
             self._start_planner(state)
