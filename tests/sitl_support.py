@@ -13,7 +13,7 @@ import os
 import socket
 import threading
 import time
-from collections.abc import Iterator
+from collections.abc import Collection, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -77,11 +77,13 @@ def _udp_free(port: int) -> bool:
     return True
 
 
-def next_px4_instance() -> int:
-    """A PX4 instance number whose UDP ports (onboard 14540/14580 + I, GCS 18570 + I) are
-    free now (0..PX4_MAX_INSTANCE)."""
+def next_px4_instance(taken: Collection[int] = ()) -> int:
+    """A PX4 instance number, not in `taken`, whose UDP ports (onboard 14540/14580 + I, GCS
+    18570 + I) are free now (0..PX4_MAX_INSTANCE)."""
     with _lock:
         for i in range(PX4_MAX_INSTANCE + 1):
+            if i in taken:
+                continue
             if all(_udp_free(base + i) for base in (14540, 14580, 18570)):
                 return i
     raise RuntimeError("no free PX4 instance")
@@ -203,6 +205,46 @@ def px4_flight_job(sitl: Px4Sitl, name: str, out: str) -> SitlFlight:
     scenario = scenario_for(name)
     timeout = scenario.duration_s + 30.0
     return asyncio.run(fly_on_sitl(scenario, SCENARIOS, sitl, Path(out), timeout_s=timeout))
+
+
+PX4_FED = {0: 300, 6: 350, 39: 400}
+"""DISTANCE_SENSOR fed to PX4 by px4_claims_job: orientation -> cm (forward, left, forward
+45 degrees down), ids 50, 51, 52."""
+
+
+def px4_claims_job(sitl: Px4Sitl) -> dict[str, Any]:
+    """Feed three MAVLink rangefinders to a started PX4 (handed over detached) on the
+    bridge's link for 8 s, 10 Hz each, and record the DISTANCE_SENSOR PX4 sends on its
+    onboard link: {"seen": {(id, orientation): [cm, ...]}, "seconds": 8.0}."""
+    sitl.wait_ready()
+    feed = mavutil.mavlink_connection(
+        sitl.bridge_link(), source_system=sitl.system_id, source_component=158
+    )
+    onboard = mavutil.mavlink_connection(
+        f"udpin:127.0.0.1:{sitl.port}", source_system=sitl.system_id, source_component=191
+    )
+    try:
+        feed.wait_heartbeat(timeout=10)
+        onboard.wait_heartbeat(timeout=10)
+        seen: dict[tuple[int, int], list[int]] = {}
+        seconds, next_feed = 8.0, 0.0
+        t_end = time.monotonic() + seconds
+        while time.monotonic() < t_end:
+            if time.monotonic() >= next_feed:
+                next_feed = time.monotonic() + 0.1
+                feed.mav.heartbeat_send(mavlink.MAV_TYPE_ONBOARD_CONTROLLER, 8, 0, 0, 0)
+                for k, (orientation, cm) in enumerate(PX4_FED.items()):
+                    boot_ms = int(time.monotonic() * 1000) & 0xFFFFFFFF
+                    feed.mav.distance_sensor_send(
+                        boot_ms, 10, 1000, cm, 0, 50 + k, orientation, 0, 0, 0, [0.0] * 4
+                    )
+            m = onboard.recv_match(type="DISTANCE_SENSOR", blocking=True, timeout=0.05)
+            if m is not None:
+                seen.setdefault((int(m.id), int(m.orientation)), []).append(int(m.current_distance))
+        return {"seen": seen, "seconds": seconds}
+    finally:
+        feed.close()
+        onboard.close()
 
 
 def set_mode(conn: Any, mode: str) -> int:

@@ -125,6 +125,24 @@ def test_distance_sensor_orientation_checked() -> None:
     np.testing.assert_allclose(t.range_vector(1.0, 0.5), [math.nan, 3.0, 3.0])
 
 
+def test_one_id_with_several_wrong_orientations_is_said_once(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    """PX4 passes on the rangefinders fed to it over one link as one sensor, each reading
+    with its own orientation: the configured one is used, the others refused, and the
+    sharing is said once. One wrong orientation alone (another device on that id, as SIH's
+    downward rangefinder) is only a mismatch."""
+    t = tel()
+    for k in range(5):
+        assert not t.update(dist(1 + k, 0, 300, orientation=25), 1.0)  # sensor 0 is NONE
+    assert t.counters["sensor_id_shared"] == 0 and "shares this id" not in caplog.text
+    for k, orientation in enumerate([39, 0, 6, 39, 0, 2, 39]):
+        ok = t.update(dist(10 + k, 1, 300 + k, orientation=orientation), 1.0)
+        assert bool(ok) == (orientation == 39)  # sensor 1 is PITCH_315
+    assert t.counters["sensor_id_shared"] == 1
+    assert caplog.text.count("shares this id") == 1 and "id 1 " in caplog.text
+
+
 def test_custom_orientation_checked_per_quaternion_every_time() -> None:
     """The check of a CUSTOM orientation is remembered per (sensor, quaternion): the same
     quaternion keeps its verdict, another one is judged afresh, whichever came first."""

@@ -33,6 +33,7 @@ from tests.sitl_support import (
     COPTER_MODE,
     LAUNCHER,
     PX4_BUNDLE,
+    PX4_FED,
     PX4_SKIP_REASON,
     SKIP_REASON,
     WIRED_PARAMS,
@@ -44,6 +45,7 @@ from tests.sitl_support import (
     next_instance,
     next_px4_instance,
     pilot_job,
+    px4_claims_job,
     px4_flight_job,
     scenario_for,
 )
@@ -97,6 +99,8 @@ def runs(tmp_path_factory: pytest.TempPathFactory) -> Iterator[dict[str, Any]]:
     if PX4_BUNDLE is not None:  # PX4 with SIH physics: the paper's flight, second in line
         px4 = Px4Sitl(PX4_BUNDLE, workdir=tmp / "px4-paper")
         queue.insert(1, ("px4-paper", px4, (px4_flight_job, "paper", str(tmp / "px4-paper"))))
+        claims = Px4Sitl(PX4_BUNDLE, workdir=tmp / "px4-claims")
+        queue.append(("px4-claims", claims, (px4_claims_job,)))
     results: dict[str, Any] = {}
     started: list[Sitl | Px4Sitl] = []
     pool = multiprocessing.get_context("spawn").Pool(MAX_PARALLEL, maxtasksperchild=1)
@@ -106,7 +110,9 @@ def runs(tmp_path_factory: pytest.TempPathFactory) -> Iterator[dict[str, Any]]:
             while queue and len(running) < MAX_PARALLEL:
                 name, sitl, (fn, *args) = queue.pop(0)
                 if isinstance(sitl, Px4Sitl):
-                    sitl.instance = next_px4_instance()
+                    sitl.instance = next_px4_instance(
+                        {s.instance for _, s in running.values() if isinstance(s, Px4Sitl)}
+                    )
                 else:
                     sitl.instance = next_instance()
                     sitl.port = free_udp_port()
@@ -212,6 +218,23 @@ def test_flight_on_px4(runs: dict[str, Any]) -> None:
 def test_height_on_px4(runs: dict[str, Any]) -> None:
     flight: SitlFlight = _get(runs, "px4-paper")
     assert flight.metrics["max_height_error_route_m"] <= SETTLED_HEIGHT_ERROR_M, _figures(flight)
+
+
+@pytest.mark.skipif(PX4_BUNDLE is None, reason=PX4_SKIP_REASON)
+def test_px4_keeps_one_mavlink_rangefinder_per_link(runs: dict[str, Any]) -> None:
+    """Three rangefinders fed to PX4 over one MAVLink link come back on its onboard link as
+    one sensor: one id (PX4's index after SIH's own downward sensor, id 0), carrying
+    whichever reading came last, at about 10 Hz in all. Sensors for the companion must reach
+    it directly on PX4 (docs/autopilots.md)."""
+    got = _get(runs, "px4-claims")
+    seen: dict[tuple[int, int], list[int]] = got["seen"]
+    own = {k for k in seen if k[1] == 25}  # SIH's downward rangefinder
+    assert {i for i, _ in own} == {0}, seen.keys()
+    fed = {k: v for k, v in seen.items() if k[1] in PX4_FED}
+    assert fed, f"no fed sensor came back: {seen.keys()}"
+    assert len({i for i, _ in fed}) == 1 and 0 not in {i for i, _ in fed}, fed.keys()
+    rate = sum(len(v) for v in fed.values()) / got["seconds"]
+    assert 5.0 <= rate <= 15.0, rate  # three sensors fed at 10 Hz each: 10 Hz in all
 
 
 def test_sensors_wired_to_the_autopilot_reach_the_planner(runs: dict[str, Any]) -> None:

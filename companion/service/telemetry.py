@@ -246,6 +246,9 @@ class Telemetry:
         Per-message work done once per sensor."""
         self._custom_ok: dict[tuple[Any, ...], _SenderCheck] = {}
         """The same for MAV_SENSOR_ROTATION_CUSTOM, per (id, min, max, quaternion)."""
+        self._wrong_aims: dict[int, set[tuple[Any, ...]]] = {}
+        """Per configured sensor id, the distinct wrong orientations (and quaternions) it
+        arrived with: two or more mean several rangefinders share the id."""
         self._order_keys = [f"DISTANCE_SENSOR.{i}" for i in range(len(sensors))]
         self._detects: dict[tuple[int, float], bool] = {}
         """The planner's detection rule (`SensorTable.valid`) per (index, reading): readings
@@ -600,6 +603,25 @@ class Telemetry:
         checks[key] = check
         return check
 
+    def _note_shared_id(self, sensor_id: int, aim: tuple[Any, ...]) -> None:
+        """Say once per id when it has come with two different wrong orientations: one id
+        carries several rangefinders (PX4 passes on every rangefinder fed to it over one
+        MAVLink link as a single sensor, the last reading's orientation with it)."""
+        seen = self._wrong_aims.setdefault(sensor_id, set())
+        if len(seen) >= 2 or aim in seen:
+            return
+        seen.add(aim)
+        if len(seen) == 2:
+            self.counters["sensor_id_shared"] += 1
+            log.warning(
+                "DISTANCE_SENSOR id %d arrives with several orientations (%s): more than one "
+                "rangefinder shares this id, and only readings in the configured orientation "
+                "are used. PX4 passes on the rangefinders fed to it over one MAVLink link as a "
+                "single sensor: send them to the companion directly (docs/autopilots.md).",
+                sensor_id,
+                ", ".join(sorted(str(a[0]) for a in seen)),
+            )
+
     def _distance_sensor(self, msg: MAVLinkMessage, t_rx: float) -> bool:
         sensor_id, orientation = int(msg.id), int(msg.orientation)
         mn, mx = int(msg.min_distance), int(msg.max_distance)
@@ -624,6 +646,7 @@ class Telemetry:
                 )
             self._count("sensor_orientation_unverified")
         elif not ok:
+            self._note_shared_id(sensor_id, (orientation, *(round(v, 2) for v in quaternion)))
             return self._reject(
                 "sensor_orientation_mismatch", "id %d orientation %d", sensor_id, orientation
             )
