@@ -109,6 +109,8 @@ class FakeAutopilot:
     commands: list[Any] = field(default_factory=list)
     signing_key: bytes | None = None
     climb_to: float | None = None
+    attitude_enabled: bool = True
+    """False: no ATTITUDE (yet), the rest of the telemetry as usual."""
 
     def __post_init__(self) -> None:
         self.codec = MavCodec(self.sysid, self.compid)
@@ -166,9 +168,12 @@ class FakeAutopilot:
 
     def telemetry(self) -> None:
         tb = self.time_boot_ms()
-        self.send(
-            mavlink2.MAVLink_attitude_message(tb, self.roll, self.pitch, self.yaw, 0.0, 0.0, 0.0)
-        )
+        if self.attitude_enabled:
+            self.send(
+                mavlink2.MAVLink_attitude_message(
+                    tb, self.roll, self.pitch, self.yaw, 0.0, 0.0, 0.0
+                )
+            )
         self.send(
             mavlink2.MAVLink_global_position_int_message(
                 tb,

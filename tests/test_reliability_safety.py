@@ -310,6 +310,24 @@ async def test_auto_start_with_an_empty_mission_does_not_take_off(
         await until(lambda: bool(commands(ap, 400)), 10.0)
 
 
+@pytest.mark.parametrize("kind", ["ardupilot", "px4"])
+async def test_auto_start_waits_for_the_vehicle_state_before_judging_the_route(
+    kind: str,
+) -> None:
+    """Home and position known, no ATTITUDE yet: the vehicle's state is unknown, and auto
+    start waits instead of saying "no route (at the end)" and giving up (it gave up on PX4
+    SITL, started as soon as PX4 was armable)."""
+    cfg = make_config(
+        control={"auto_start": {"enabled": True, "arm_retry_s": 0.2, "prestream_s": 0.3}}
+    )
+    async with over_udp(cfg, kind=kind, attitude_enabled=False, **on_ground()) as (_, ap, _):
+        await asyncio.sleep(1.0)
+        assert not commands(ap, 400)  # not armed without an attitude
+        ap.attitude_enabled = True
+        await until(lambda: bool(commands(ap, 400)), 10.0)
+        assert not any("no route" in t for t in pilot_texts(ap))
+
+
 LONG_REASON = "PreArm: Rangefinder 1: No Data; Compass not calibrated; Battery 1 below minimum"
 
 

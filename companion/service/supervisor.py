@@ -16,6 +16,7 @@ import contextlib
 import logging
 from collections import Counter
 from collections.abc import Awaitable, Callable, Coroutine
+from dataclasses import dataclass
 from typing import Any
 
 from companion.config import ServiceConfig, latlon_points_xy, route_problem
@@ -50,6 +51,36 @@ CONFIG_RETRY_S = 2.0
 """A failed configuration is tried again after this long."""
 AUTOPILOT_TEXT_S = 10.0
 """The autopilot's warning is quoted as the reason for a refusal this long after it came."""
+TAKEOFF_NEAR_M = 0.1
+"""The take-off is done within this of its altitude (relative, metres) ..."""
+TAKEOFF_SHORT_FRACTION = 0.9
+"""... or above this fraction of it once the climb has stopped: |vz| below TAKEOFF_STILL_MPS
+for TAKEOFF_STILL_S (an autopilot that ends its take-off a little short is not waited on
+until the timeout). Handing over at 90 % alone started the route up to 10 % of the take-off
+altitude low: 0.9 m of a 9 m take-off on ArduCopter and PX4 SITL."""
+TAKEOFF_STILL_MPS = 0.1
+TAKEOFF_STILL_S = 1.0
+
+
+@dataclass
+class TakeoffWatch:
+    """When a take-off to alt_m (above home, metres) is done: within TAKEOFF_NEAR_M of it, or
+    above TAKEOFF_SHORT_FRACTION of it with the climb stopped for TAKEOFF_STILL_S."""
+
+    alt_m: float
+    _still_since: float | None = None
+
+    def done(self, relative_alt_m: float, vz_down_mps: float, now_s: float) -> bool:
+        if relative_alt_m >= self.alt_m - TAKEOFF_NEAR_M:
+            return True
+        high = relative_alt_m >= TAKEOFF_SHORT_FRACTION * self.alt_m
+        if not high or abs(vz_down_mps) >= TAKEOFF_STILL_MPS:
+            self._still_since = None
+            return False
+        if self._still_since is None:
+            self._still_since = now_s
+        return now_s - self._still_since >= TAKEOFF_STILL_S
+
 
 Say = Callable[[str, Severity], None]
 Spawn = Callable[[Coroutine[Any, Any, None], str], None]
@@ -350,12 +381,19 @@ class Supervisor:
     async def _wait_for_route(self) -> bool:
         """Until there is a base point to fly to (farther than MIN_BASE_POINT_SPACING_M from
         the vehicle), saying so once; a mission is downloaded again every MISSION_RETRY_S.
+        Waits while the vehicle's position or home (the frame of the route) is unknown.
         False when the configured route has nothing to fly (it will not change)."""
         said = False
         while True:
             self.host.update_frame()
             state = self.host.vehicle_state()
-            if state is not None and self.host.remaining_points(state.position_enu[:2]):
+            if state is None or self.host.route_source_points is None:
+                # the vehicle's state not known yet (configuring waits for home and position;
+                # PX4 SITL's first ATTITUDE came after them): nothing to judge the route by,
+                # which is not "at the end"
+                await self.clock.sleep(0.1)
+                continue
+            if self.host.remaining_points(state.position_enu[:2]):
                 return True
             if not said:
                 said = True
@@ -428,12 +466,7 @@ class Supervisor:
                 if not self._climbing():
                     raise
                 log.info("take-off retry refused while climbing: the first attempt worked")
-            ok = await self.wait_for(
-                lambda: (
-                    self.tel.position is not None and self.tel.position.relative_alt_m >= 0.9 * alt
-                ),
-                a.takeoff_timeout_s,
-            )
+            ok = await self.wait_for(self._takeoff_done(alt), a.takeoff_timeout_s)
             if not ok:
                 raise CommandError(
                     mavlink2.MAV_CMD_NAV_TAKEOFF, "take-off did not reach its altitude"
@@ -480,6 +513,18 @@ class Supervisor:
                     last = reason
                     log.warning("%s refused (%s); retrying until arm_timeout_s", what, reason)
                 await self.clock.sleep(retry_s)  # simulated time in sim mode
+
+    def _takeoff_done(self, alt_m: float) -> Callable[[], bool]:
+        """A predicate on the telemetry: the take-off to alt_m (above home) is done."""
+        watch = TakeoffWatch(alt_m)
+
+        def done() -> bool:
+            pos = self.tel.position
+            return pos is not None and watch.done(
+                pos.relative_alt_m, pos.velocity_ned_mps[2], self.clock.now()
+            )
+
+        return done
 
     def _climbing(self) -> bool:
         pos = self.tel.position
