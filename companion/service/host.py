@@ -191,6 +191,7 @@ class PlannerHost:
         """Seen disarmed since the last take-over: the next take-over is the first of a
         flight, and may turn to face the route."""
         self._may_face = False
+        """This take-over is the first of a flight (`_from_ground` when it began)."""
         self.planner_failed = False
         self.building = False
         self._build_gen = 0
