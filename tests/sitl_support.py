@@ -49,8 +49,9 @@ _instances = itertools.count(20 + (os.getpid() % 8) * 8)
 _lock = threading.Lock()
 
 
-def _tcp_free(port: int) -> bool:
-    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+def _port_free(port: int, kind: int = socket.SOCK_STREAM) -> bool:
+    """True when 127.0.0.1:port (TCP, or UDP with kind SOCK_DGRAM) can be bound now."""
+    with socket.socket(socket.AF_INET, kind) as s:
         try:
             s.bind(("127.0.0.1", port))
         except OSError:
@@ -63,18 +64,9 @@ def next_instance() -> int:
     with _lock:
         for _ in range(80):
             i = 20 + (next(_instances) - 20) % 80
-            if all(_tcp_free(5760 + 10 * i + k) for k in range(4)):
+            if all(_port_free(5760 + 10 * i + k) for k in range(4)):
                 return i
     raise RuntimeError("no free SITL instance")
-
-
-def _udp_free(port: int) -> bool:
-    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
-        try:
-            s.bind(("127.0.0.1", port))
-        except OSError:
-            return False
-    return True
 
 
 def next_px4_instance(taken: Collection[int] = ()) -> int:
@@ -84,7 +76,7 @@ def next_px4_instance(taken: Collection[int] = ()) -> int:
         for i in range(PX4_MAX_INSTANCE + 1):
             if i in taken:
                 continue
-            if all(_udp_free(base + i) for base in (14540, 14580, 18570)):
+            if all(_port_free(base + i, socket.SOCK_DGRAM) for base in (14540, 14580, 18570)):
                 return i
     raise RuntimeError("no free PX4 instance")
 

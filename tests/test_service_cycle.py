@@ -305,14 +305,19 @@ def test_non_finite_setpoints_never_reach_the_wire() -> None:
     assert len(r.setpoints()) == n and r.counters["setpoints_refused_nonfinite"] == 1
 
 
+def take_over_after_landing(r: Rig) -> None:
+    """Disarmed for 0.2 s, then armed in GUIDED: the next take-over is a flight's first."""
+    r.ap.armed = False
+    r.run(0.2)
+    r.ap.armed = True
+    r.ap.custom_mode = GUIDED
+
+
 def test_the_vehicle_turns_to_face_the_route_before_the_planner_starts() -> None:
     """Facing north with the route east: hold at the take-over point with the yaw on the
     first leg's bearing, say so, and build the planner once the heading is within 10 deg."""
     r = rig(control={"face_route_deg": 30.0})
-    r.ap.armed = False  # seen on the ground: the next take-over starts a flight
-    r.run(0.2)
-    r.ap.armed = True
-    r.ap.custom_mode = GUIDED
+    take_over_after_landing(r)  # seen on the ground: a flight's first take-over
     r.run(1.0)
     assert r.box.made == [] and r.cycle.last_kind == "hold"
     assert r.cycle.hold_reason() == "turning to face the route"
@@ -327,10 +332,7 @@ def test_the_vehicle_turns_to_face_the_route_before_the_planner_starts() -> None
 
 def test_a_turn_the_vehicle_does_not_follow_ends_after_its_timeout() -> None:
     r = rig(control={"face_route_deg": 30.0})
-    r.ap.armed = False
-    r.run(0.2)
-    r.ap.armed = True
-    r.ap.custom_mode = GUIDED
+    take_over_after_landing(r)
     r.run(29.0)
     assert r.box.made == []
     r.run(1.5)
@@ -341,10 +343,7 @@ def test_a_turn_the_vehicle_does_not_follow_ends_after_its_timeout() -> None:
 def test_no_turn_within_face_route_deg() -> None:
     r = rig(control={"face_route_deg": 30.0})
     r.ap.yaw = np.radians(70.0)  # 20 deg off the route's bearing (east)
-    r.ap.armed = False
-    r.run(0.2)
-    r.ap.armed = True
-    r.ap.custom_mode = GUIDED
+    take_over_after_landing(r)
     r.run(1.0)
     assert len(r.box.made) == 1 and not any("face the route" in t for t in r.texts())
 
@@ -359,9 +358,6 @@ def test_no_turn_in_mid_flight_nor_near_an_obstacle() -> None:
 
     r = rig(control={"face_route_deg": 30.0})
     r.ap.ranges_cm = {0: 450, 1: 700, 2: 700}  # the obstacle sensor at 4.5 m < 3 D_min
-    r.ap.armed = False
-    r.run(0.2)
-    r.ap.armed = True
-    r.ap.custom_mode = GUIDED
+    take_over_after_landing(r)
     r.run(1.0)
     assert len(r.box.made) == 1 and not any("face the route" in t for t in r.texts())
