@@ -1,4 +1,5 @@
-"""Benchmarks of the planner, the simulator and the service (issue 6).
+"""Benchmarks of the planner, the simulator and the service (issues 6 and 14; where both
+set a target, issue 14's).
 
 `python -m bench` (or `make bench`) runs them all, prints a table and writes
 bench/results.json: every figure with its unit and the issue's target, the raw percentiles

@@ -56,6 +56,16 @@ def main(argv: list[str] | None = None) -> int:
         sections.append(sweep.run(quick))
     meta["wall_s"] = round(time.perf_counter() - started, 1)
     meta["quick"] = quick
+    if only == set(NAMES):
+        run_sec = Section("this run")
+        run_sec.add(
+            "bench.wall_s",
+            f"wall time of every benchmark{' (--quick)' if quick else ''}",
+            meta["wall_s"],
+            "s",
+            ("<=", 90) if quick else None,
+        )
+        sections.append(run_sec)
     print(table(sections))
     write_results(args.out, sections, meta)
     print(f"wrote {args.out}")

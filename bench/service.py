@@ -543,7 +543,7 @@ def run(quick: bool = False) -> Section:
         "input -> setpoint latency, p99",
         lat.get("p99", math.nan),
         "us",
-        ("<=", 2000),
+        ("<=", 1000),
     )
     for name, lt in rt["latency_by_type_us"].items():
         sec.add(
@@ -629,13 +629,14 @@ def run(quick: bool = False) -> Section:
         "service CPU per cycle / pymavlink floor",
         rt["cpu_per_cycle_us"] / floor["per_cycle_us"],
         "x",
+        ("<=", 3),
     )
     sec.add(
         "sim.udp_lockstep.speed_x",
         "simulator + service over UDP, lockstep, flying",
         ls["flight_speed_x"],
         "x real time",
-        (">=", 20),
+        (">=", 50),
     )
     sec.add(
         "sim.udp_lockstep.hold_speed_x",

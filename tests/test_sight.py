@@ -89,6 +89,31 @@ def test_planner_announces_and_applies_the_layout_limit() -> None:
     assert sum("speed limited" in e for e in events) == 1
 
 
+def test_a_jittering_period_announces_the_layout_limit_once() -> None:
+    """The service steps with the period it measured, different every cycle: the limit
+    follows each cycle's period, and the pilot is told once, not every cycle."""
+    from companion.planner import Planner, PlannerParams, Route, VehicleState
+
+    sensors = table("horizontal-7.yaml")
+    params = PlannerParams(v_d_mps=3.0, accel_max_mps2=1.0)
+    route = Route(np.array([[0.0, 0.0], [200.0, 0.0]]), 0.0, 0.0)
+    planner = Planner(params, sensors, route, np.array([0.0, 0.0, 2.0]))
+    ranges = sensors.max_range_m.copy()
+    for i in sensors.surface_index.values():
+        ranges[i] = 2.0 / math.cos(math.pi / 4)
+    state = VehicleState(np.array([0.0, 0.0, 2.0]), 0.0, 0.0, 0.0)
+    flag = wall_flag_distance_m(sensors, 2.0, 0.6)
+    events: list[str] = []
+    for k in range(200):
+        dt = 0.05 + 0.004 * math.sin(1.7 * k)
+        res = planner.step(state, ranges, dt)
+        events += res.diagnostics.events
+        limit = layout_speed_limit_mps(flag, 2.3, 1.0, dt, params.reaction_time_s)
+        assert res.diagnostics.speed_ref_mps <= limit * (1 + 1e-9)
+        state = VehicleState(np.array(res.setpoint.position_enu), 0.0, 0.0, 0.0)
+    assert sum("speed limited" in e for e in events) == 1
+
+
 def test_the_vehicle_ahead_of_x_d_lowers_the_layout_limit() -> None:
     """A vehicle measured ahead of its setpoint (an overshooting position controller) has
     that much less room: the layout's limit drops while it lasts."""

@@ -326,7 +326,7 @@ class Planner:
         self._last_ground: dict[Group, list[float]] = {}  # [x, y, z] world ENU, metres
         self._ground_store = GroundPoints()
         self._surface_range: dict[int, float] = {}  # each surface sensor's last range, m
-        self._sight_key: tuple[float, float] | None = None
+        self._sight_key: tuple[float, float] | None = None  # (H_d, phi_max) of _flag_m
         self._failed_attempt: tuple[int, int, int, bool] | None = None
         self._failed_cycle = 0
         self._search_units = 0
@@ -1423,23 +1423,25 @@ class Planner:
 
     def _update_layout_limit(self, dt_s: float, events: list[str]) -> None:
         """The speed from which a wall first flagged as steep can still be stopped for,
-        reaction allowance included (`sight`): the flag distance is recomputed when H_d or
-        the period changes (and the limit announced when it binds), the limit itself every
-        cycle with the vehicle's measured lead on X_d."""
+        reaction allowance included (`sight`): the flag distance is recomputed when H_d
+        changes (and the limit announced when it binds), the limit every cycle with that
+        cycle's period (a live service measures a different one every cycle) and the
+        vehicle's measured lead on X_d."""
         params = self.params
         trigger = params.d_min_m + 0.5 * params.clearance_margin_m
         a, t = params.accel_max_mps2, params.reaction_time_s
-        key = (self._h_d, dt_s)
-        if key != self._sight_key:
+        key = (self._h_d, params.phi_max_rad)
+        announce = key != self._sight_key
+        if announce:
             self._sight_key = key
             self._flag_m = wall_flag_distance_m(self.sensors, self._h_d, params.phi_max_rad)
-            v_max = layout_speed_limit_mps(self._flag_m, trigger, a, dt_s, t)
-            self._v_cruise = min(params.v_d_mps, v_max)
-            if self._v_cruise < params.v_d_mps:
-                events.append(
-                    f"sensor layout flags a wall as steep only {self._flag_m:.1f} m ahead: "
-                    f"speed limited to {self._v_cruise:.2f} m/s (v_d {params.v_d_mps:g})"
-                )
+        v_max = layout_speed_limit_mps(self._flag_m, trigger, a, dt_s, t)
+        self._v_cruise = min(params.v_d_mps, v_max)
+        if announce and self._v_cruise < params.v_d_mps:
+            events.append(
+                f"sensor layout flags a wall as steep only {self._flag_m:.1f} m ahead: "
+                f"speed limited to {self._v_cruise:.2f} m/s (v_d {params.v_d_mps:g})"
+            )
         v_now = layout_speed_limit_mps(self._flag_m, trigger, a, dt_s, t, self._ahead_m)
         self._v_layout = min(params.v_d_mps, v_now)
 
