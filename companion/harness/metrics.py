@@ -137,6 +137,76 @@ def steep_clearances(
     return np.array([world.obstacle_distance(p) for p in xyz], dtype=np.float64)
 
 
+GENTLE_RADIUS_M = 10.0
+"""Relief counts as gentle where its radius of curvature is at least this (m): the issue's
+0.07 m height target applies there."""
+GENTLE_SETTLE_BAND_M = 0.07
+"""... counted once the vehicle has first come within this of H_d (the target's own band, as
+SETTLE_BAND_M is the 0.15 m target's), m."""
+_CURVATURE_STEP_M = 0.25
+
+
+def principal_curvature_max(z: np.ndarray, step_m: float) -> np.ndarray:
+    """max(|k1|, |k2|) (1/m) of the surface z = f(x, y) sampled on a square grid (rows y,
+    columns x, step_m apart): the principal curvatures of a graph from its first and second
+    differences, (1 + fy^2) fxx - 2 fx fy fxy + (1 + fx^2) fyy over 2 W^3 (mean) and
+    (fxx fyy - fxy^2) / W^4 (Gaussian), W = sqrt(1 + fx^2 + fy^2)."""
+    fy, fx = np.gradient(z, step_m)
+    fxy, fxx = np.gradient(fx, step_m)
+    fyy, _ = np.gradient(fy, step_m)
+    w2 = 1.0 + fx * fx + fy * fy
+    mean = ((1.0 + fy * fy) * fxx - 2.0 * fx * fy * fxy + (1.0 + fx * fx) * fyy) / (2.0 * w2**1.5)
+    gauss = (fxx * fyy - fxy * fxy) / (w2 * w2)
+    out: np.ndarray = np.abs(mean) + np.sqrt(np.maximum(mean * mean - gauss, 0.0))
+    return out
+
+
+def _window_max(a: np.ndarray, half: int, axis: int) -> np.ndarray:
+    """The max of a over [i - half, i + half] along axis (edges repeated), by doubling
+    spans: O(n log half) time, O(n) memory."""
+    pad = [(0, 0)] * a.ndim
+    pad[axis] = (half, half)
+    m = np.pad(a, pad, mode="edge")
+    k, span = 2 * half + 1, 1
+    n = a.shape[axis]
+
+    def part(x: np.ndarray, start: int, length: int) -> np.ndarray:
+        out: np.ndarray = np.take(x, np.arange(start, start + length), axis=axis)
+        return out
+
+    while 2 * span <= k:
+        length = m.shape[axis] - span
+        m = np.maximum(part(m, 0, length), part(m, span, length))
+        span *= 2
+    result: np.ndarray = np.maximum(part(m, 0, n), part(m, k - span, n))
+    return result
+
+
+def gentle_relief(
+    world: World, x: np.ndarray, y: np.ndarray, reach_m: float, radius_m: float = GENTLE_RADIUS_M
+) -> np.ndarray:
+    """Per cycle, (n,) bool: the surface within reach_m of (x, y) (a square of half-side
+    reach_m) has a radius of curvature of at least radius_m everywhere (its principal
+    curvatures, sampled every 0.25 m, are within 1 / radius_m). Creases (a flank's foot, a
+    mesa's rim) and solids' edges are not gentle."""
+    x = np.asarray(x, dtype=np.float64)
+    y = np.asarray(y, dtype=np.float64)
+    if len(x) == 0:
+        return np.zeros(0, dtype=bool)
+    step = _CURVATURE_STEP_M
+    margin = reach_m + 2.0 * step
+    gx = np.arange(float(x.min()) - margin, float(x.max()) + margin + step, step)
+    gy = np.arange(float(y.min()) - margin, float(y.max()) + margin + step, step)
+    z = world.height(*np.meshgrid(gx, gy))
+    kappa = principal_curvature_max(np.asarray(z, dtype=np.float64), step)
+    half = math.ceil(reach_m / step)
+    near = _window_max(_window_max(kappa, half, 0), half, 1)
+    ix = np.clip(np.rint((x - gx[0]) / step).astype(int), 0, len(gx) - 1)
+    iy = np.clip(np.rint((y - gy[0]) / step).astype(int), 0, len(gy) - 1)
+    out: np.ndarray = near[iy, ix] <= 1.0 / radius_m
+    return out
+
+
 def for_run(scenario: Scenario, world: World, result: RunResult) -> dict[str, Any]:
     """`compute` with the scenario's route, H_d and v_d."""
     return compute(

@@ -663,7 +663,8 @@ class Planner:
           by H_d - sqrt(H_d^2 - r^2)), and no lower than H_d off the plane of the fit's
           slope through that point (the points lie in a few lines along the track, and on
           a side slope the place where H_d's sphere touches the ground lies between them:
-          there the fit's slope says more). Eq. (4) steers at an aim about 2 H_d ahead: a
+          there the fit's slope says more), carried over from the point to X_d's heading
+          with the fit's slope. Eq. (4) steers at an aim about 2 H_d ahead: a
           first-order lag that cuts a mesa's rim or a crest on the way down and rounds a
           flank's foot.
         - Else eq. (4) on the aim shaped by the fit (`_shaped_aim`), or, where the slope
@@ -692,6 +693,15 @@ class Planner:
                 gx, gy = fit.gradient(px, py)
                 lift = self._h_d * (math.sqrt(1.0 + gx * gx + gy * gy) - 1.0)
                 target = max(target, pz + self._h_d + min(lift, _GROUND_LIFT_MAX_M))
+                # The point lies up to _SURFACE_SNAP_M off X_d's heading (on a curve, the
+                # forward sensor's hits lie on the tangent, outside the path): carry the
+                # height over to the heading with the fitted slope, and steer over the run
+                # along it. On a side slope the height at the point is not the path's.
+                c, s = math.cos(heading), math.sin(heading)
+                along = (px - xd) * c + (py - yd) * s
+                shift = gx * (xd + along * c - px) + gy * (yd + along * s - py)
+                target += min(max(shift, -_GROUND_LIFT_MAX_M), _GROUND_LIFT_MAX_M)
+                run = along
             phi_d = min(max(math.atan2(target - zd, run), -phi_max_rad), phi_max_rad)
         else:
             phi_d = desired_pitch_xyz(
