@@ -1282,19 +1282,23 @@ class Planner:
             events.append(f"base point {k + 1} out of reach: passing it {miss:.1f} m to the side")
 
     def _escape_stretch(self) -> tuple[FloatArray, FloatArray] | None:
-        """The new path's first stretch inside the re-plan band, with the clearances it was
-        accepted with (arc lengths, clearances); None when it starts outside the band.
+        """The new path's look-ahead with the clearances it was accepted with (arc lengths,
+        clearances), up to its last sample inside the re-plan band; None when it starts
+        outside the band.
 
-        A correction that starts inside the band leads out of it (`avoidance.ESCAPE_SLOPE`);
-        the speed schedule flies it (places no closer than here are free). The conflict check
-        must agree, or it finds the same stretch in conflict every cycle and re-plans each
-        time (the vehicle crawls out, re-planning 20 times a second)."""
+        A correction that starts inside the band leads out of it (`avoidance.ESCAPE_SLOPE`),
+        and from inside D_min it need keep only D_min after (`avoidance.keeps_clear`), so it
+        may come back into the band farther on; the speed schedule flies it (places no
+        closer than here are free). The conflict check must agree, or it finds the same
+        stretch in conflict every cycle and re-plans each time (the vehicle crawls out,
+        re-planning 20 times a second), or, moving inside D_min, stops, and from rest takes
+        the same path again (blocked and resumed every other cycle)."""
         look = self._look_ahead()
         trigger = self.params.d_min_m + 0.5 * self.params.clearance_margin_m
         if look.clearance is None or len(look.s) == 0 or look.clearance[0] >= trigger:
             return None
-        out = np.flatnonzero(look.clearance >= trigger)
-        end = int(out[0]) if len(out) else len(look.s)
+        inside = np.flatnonzero(look.clearance < trigger)
+        end = int(inside[-1]) + 1
         return look.s[:end].copy(), look.clearance[:end].copy()
 
     def _escape_exempt(self, look_s: FloatArray, clearance: FloatArray) -> BoolArray:
