@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 import yaml
 
+from companion.planner import Planner, PlannerParams, Route, VehicleState
 from companion.planner.sensors import (
     Group,
     Role,
@@ -62,10 +63,11 @@ def test_speed_limit_includes_the_reaction_and_the_lead() -> None:
     assert layout_speed_limit_mps(4.9, 2.3, 0.5, 0.05, reaction_s=0.4, allowance_m=3.0) == 0.0
 
 
-def test_planner_announces_and_applies_the_layout_limit() -> None:
-    """With v_d above what a level layout can stop for, X_d never exceeds the limit."""
-    from companion.planner import Planner, PlannerParams, Route, VehicleState
-
+def _over_flat_ground_at_3_mps() -> tuple[
+    SensorTable, PlannerParams, Planner, np.ndarray, VehicleState
+]:
+    """A planner with the level layout (horizontal-7) and v_d = 3 m/s, above what it can
+    stop for, over flat ground 2 m below: (sensors, params, planner, ranges, state)."""
     sensors = table("horizontal-7.yaml")
     params = PlannerParams(v_d_mps=3.0, accel_max_mps2=1.0)
     route = Route(np.array([[0.0, 0.0], [200.0, 0.0]]), 0.0, 0.0)
@@ -74,6 +76,12 @@ def test_planner_announces_and_applies_the_layout_limit() -> None:
     for i in sensors.surface_index.values():
         ranges[i] = 2.0 / math.cos(math.pi / 4)
     state = VehicleState(np.array([0.0, 0.0, 2.0]), 0.0, 0.0, 0.0)
+    return sensors, params, planner, ranges, state
+
+
+def test_planner_announces_and_applies_the_layout_limit() -> None:
+    """With v_d above what a level layout can stop for, X_d never exceeds the limit."""
+    sensors, params, planner, ranges, state = _over_flat_ground_at_3_mps()
     events: list[str] = []
     speeds = []
     for _ in range(200):
@@ -92,16 +100,7 @@ def test_planner_announces_and_applies_the_layout_limit() -> None:
 def test_a_jittering_period_announces_the_layout_limit_once() -> None:
     """The service steps with the period it measured, different every cycle: the limit
     follows each cycle's period, and the pilot is told once, not every cycle."""
-    from companion.planner import Planner, PlannerParams, Route, VehicleState
-
-    sensors = table("horizontal-7.yaml")
-    params = PlannerParams(v_d_mps=3.0, accel_max_mps2=1.0)
-    route = Route(np.array([[0.0, 0.0], [200.0, 0.0]]), 0.0, 0.0)
-    planner = Planner(params, sensors, route, np.array([0.0, 0.0, 2.0]))
-    ranges = sensors.max_range_m.copy()
-    for i in sensors.surface_index.values():
-        ranges[i] = 2.0 / math.cos(math.pi / 4)
-    state = VehicleState(np.array([0.0, 0.0, 2.0]), 0.0, 0.0, 0.0)
+    sensors, params, planner, ranges, state = _over_flat_ground_at_3_mps()
     flag = wall_flag_distance_m(sensors, 2.0, 0.6)
     events: list[str] = []
     for k in range(200):
@@ -117,16 +116,7 @@ def test_a_jittering_period_announces_the_layout_limit_once() -> None:
 def test_the_vehicle_ahead_of_x_d_lowers_the_layout_limit() -> None:
     """A vehicle measured ahead of its setpoint (an overshooting position controller) has
     that much less room: the layout's limit drops while it lasts."""
-    from companion.planner import Planner, PlannerParams, Route, VehicleState
-
-    sensors = table("horizontal-7.yaml")
-    params = PlannerParams(v_d_mps=3.0, accel_max_mps2=1.0)
-    route = Route(np.array([[0.0, 0.0], [200.0, 0.0]]), 0.0, 0.0)
-    planner = Planner(params, sensors, route, np.array([0.0, 0.0, 2.0]))
-    ranges = sensors.max_range_m.copy()
-    for i in sensors.surface_index.values():
-        ranges[i] = 2.0 / math.cos(math.pi / 4)
-    state = VehicleState(np.array([0.0, 0.0, 2.0]), 0.0, 0.0, 0.0)
+    sensors, _, planner, ranges, state = _over_flat_ground_at_3_mps()
     speeds = []
     for _ in range(200):
         res = planner.step(state, ranges, 0.05)

@@ -1437,8 +1437,8 @@ class Planner:
 
     def _update_layout_limit(self, dt_s: float, events: list[str]) -> None:
         """The speed from which a wall first flagged as steep can still be stopped for,
-        reaction allowance included (`sight`): the flag distance is recomputed when H_d
-        changes (and the limit announced when it binds), the limit every cycle with that
+        reaction allowance included (`sight`): the flag distance is recomputed when H_d or
+        phi_max changes (and the limit announced when it binds), the limit every cycle with that
         cycle's period (a live service measures a different one every cycle) and the
         vehicle's measured lead on X_d."""
         params = self.params
