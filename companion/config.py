@@ -100,6 +100,9 @@ class AutopilotConfig(Section):
     setpoint_frame: "auto" = relative altitude (6) on ArduPilot, global AMSL (5) on PX4,
         whose frame 6 applies the home/origin altitude difference with the wrong sign.
         Terrain frames are not offered: ArduCopter rejects them with velocity.
+    acceleration_feedforward: send X_d's acceleration with its position and velocity
+        (ArduCopter GUIDED and PX4 OFFBOARD feed it forward; without it a multicopter lags a
+        climbing or turning X_d); false masks it out of every setpoint.
     """
 
     type: Literal["auto", "ardupilot", "px4"] = "auto"
@@ -111,6 +114,7 @@ class AutopilotConfig(Section):
     command_retries: Annotated[int, Field(ge=0, le=10)] = 3
     streams_hz: StreamsConfig = StreamsConfig()
     setpoint_frame: Literal["auto", "global_relative_alt", "global"] = "auto"
+    acceleration_feedforward: bool = True
 
 
 class AutoStartConfig(Section):

@@ -59,7 +59,15 @@ def wire(msg: Any) -> Any:
     return rx.parse_buffer(msg.pack(ENC))[0]
 
 
-def target(frame: int, mask: int, east: float, north: float, alt: float, vel=(0, 0, 0)) -> Any:
+def target(
+    frame: int,
+    mask: int,
+    east: float,
+    north: float,
+    alt: float,
+    vel=(0, 0, 0),
+    accel=(0, 0, 0),
+) -> Any:
     g = FRAME.to_geodetic(east, north, 0.0)
     return wire(
         ENC.set_position_target_global_int_encode(
@@ -72,9 +80,7 @@ def target(frame: int, mask: int, east: float, north: float, alt: float, vel=(0,
             round(g.lon_deg * 1e7),
             alt,
             *vel,
-            0,
-            0,
-            0,
+            *accel,
             0,
             0,
         )
@@ -226,7 +232,31 @@ def test_px4_frames_and_relative_altitude_quirk() -> None:
     assert same.target is not None and same.target.position_enu[2] == pytest.approx(25, abs=0.01)
 
 
+def test_both_read_the_acceleration_feedforward_unless_masked() -> None:
+    pos_vel_acc = POS_VEL & ~ACC_IGNORE
+    for decode in (decode_ardupilot, decode_px4):
+        msg = target(5, pos_vel_acc, 1, 1, 590.0, vel=(1, 0, 0), accel=(0.2, -0.1, -0.4))
+        d = decode(msg, ctx(), 1.0)
+        assert d.outcome is Outcome.ACCEPT and d.target is not None
+        assert d.target.acceleration_enu == pytest.approx([-0.1, 0.2, 0.4])  # NED -> ENU
+        masked = decode(target(5, POS_VEL, 1, 1, 590.0, accel=(0.2, 0, 0)), ctx(), 1.0)
+        assert masked.target is not None and masked.target.acceleration_enu is None
+    bad = target(5, pos_vel_acc, 1, 1, 590.0, accel=(math.nan, 0, 0))
+    assert decode_ardupilot(bad, ctx(), 1.0).outcome is Outcome.STOP
+
+
 # ------------------------------------------------------------------------------ control
+def test_reference_acceleration_is_its_velocity_change_within_the_limit() -> None:
+    cfg = MavlinkSimConfig()
+    sh = ReferenceShaper(cfg.limits, np.zeros(3), 0.0)
+    for k in range(1, 200):
+        before = sh.velocity.copy()
+        sh.step(None, np.array([0.01 * k, 0.0, 0.0]), None, None, 0.01)  # 1 m/s^2 ramp
+        assert sh.acceleration == pytest.approx((sh.velocity - before) / 0.01)
+        assert np.linalg.norm(sh.acceleration) <= cfg.limits.accel_mps2 + 1e-9
+    assert sh.acceleration == pytest.approx([min(1.0, cfg.limits.accel_mps2), 0.0, 0.0])
+
+
 def test_reference_reaches_target_within_limits() -> None:
     cfg = MavlinkSimConfig()
     sh = ReferenceShaper(cfg.limits, np.zeros(3), 0.0)
@@ -428,6 +458,19 @@ def test_ardupilot_position_velocity_target_is_integrated_until_timeout() -> Non
     ap.position_target(target(6, POS_VEL, 0, 0, 5.0, vel=(1.0, 0, 0)), t)  # north at 1 m/s
     state, t = _fly(ap, state, t, t + 10.0)
     assert state.position_enu[1] == pytest.approx(3.0, abs=0.05)  # integrated for 3 s only
+
+
+def test_ardupilot_integrates_the_acceleration_target_too() -> None:
+    ap, state = _autopilot()
+    ap.set_mode(ARDUCOPTER.mode("GUIDED"), 1.0, state)
+    ap.arm(1.0, state, False)
+    ap.takeoff(5.0, False, 1.0, state)
+    state, t = _fly(ap, state, 1.0, 6.0)
+    mask = POS_VEL & ~ACC_IGNORE
+    ap.position_target(target(6, mask, 0, 0, 5.0, vel=(0, 0, 0), accel=(0.2, 0, 0)), t)
+    state, t = _fly(ap, state, t, t + 10.0)
+    # north along 0.2 t^2 / 2 for the 3 s of GUID_TIMEOUT: 0.9 m
+    assert state.position_enu[1] == pytest.approx(0.9, abs=0.05)
 
 
 def test_auto_disarm_when_not_taking_off() -> None:

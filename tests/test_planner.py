@@ -8,6 +8,7 @@ import pytest
 import yaml
 
 from companion.planner import ArcMethod, Decision, Planner, PlannerParams, Route, VehicleState
+from companion.planner.planner import ACCEL_FEEDFORWARD_MAX_MPS2
 from companion.tuning import SensorConfig, sensor_table
 
 SENSORS = sensor_table(
@@ -61,6 +62,23 @@ def test_flat_ground_flies_level_at_v_d() -> None:
     np.testing.assert_allclose(last.setpoint.velocity_enu, [1.0, 0.0, 0.0], atol=1e-9)
     # Started from rest, ramped at accel_max, then 1 m/s: 10 s -> 10 m - v^2 / (2 a).
     assert last.setpoint.position_enu[0] == pytest.approx(10.0 - 1.0, abs=0.06)
+
+
+def test_the_acceleration_fed_forward_is_the_change_of_x_d_velocity() -> None:
+    """Ramping up at accel_max, cruising, braking to the goal: the setpoint's acceleration
+    is the velocity's change over the cycle (m/s^2, ENU), within the feed-forward cap."""
+    results = fly(make(), 1000)
+    dt, a_max = 0.05, PlannerParams().accel_max_mps2
+    prev = np.zeros(3)
+    for r in results:
+        sp = r.setpoint
+        np.testing.assert_allclose(sp.acceleration_enu, (sp.velocity_enu - prev) / dt, atol=1e-9)
+        assert np.linalg.norm(sp.acceleration_enu) <= ACCEL_FEEDFORWARD_MAX_MPS2 + 1e-12
+        prev = sp.velocity_enu
+    along = [r.setpoint.acceleration_enu[0] for r in results]
+    assert along[0] == pytest.approx(a_max) and along[100] == pytest.approx(0.0, abs=1e-9)
+    braking = [a for a in along if a < -0.05]  # to the goal, at about accel_max
+    assert float(np.median(braking)) == pytest.approx(-a_max, rel=0.05)
 
 
 def test_reaches_the_goal_and_stops() -> None:

@@ -303,6 +303,27 @@ def test_non_finite_setpoints_never_reach_the_wire() -> None:
     n = len(r.setpoints())
     r.cycle.send_setpoint(Setpoint(np.array([np.nan, 0, 0]), np.zeros(3), 0.0, 0.0), 1.0)
     assert len(r.setpoints()) == n and r.counters["setpoints_refused_nonfinite"] == 1
+    bad_accel = Setpoint(np.zeros(3), np.zeros(3), 0.0, 0.0, np.array([0.0, np.inf, 0.0]))
+    r.cycle.send_setpoint(bad_accel, 1.0)
+    assert len(r.setpoints()) == n and r.counters["setpoints_refused_nonfinite"] == 2
+
+
+@pytest.mark.parametrize("feedforward", [True, False])
+def test_the_acceleration_goes_out_unless_configured_off(feedforward: bool) -> None:
+    from companion.planner.types import Setpoint
+
+    r = rig(autopilot={"acceleration_feedforward": feedforward})
+    r.ap.custom_mode = GUIDED
+    r.run(0.1)
+    sp = Setpoint(np.zeros(3), np.array([1.0, 0.0, 0.0]), 0.0, 0.0, np.array([0.5, 0.0, 0.2]))
+    r.cycle.send_setpoint(sp, 1.0)
+    msg = r.setpoints()[-1]
+    if feedforward:
+        assert msg.type_mask & 0b111000000 == 0
+        assert (msg.afx, msg.afy, msg.afz) == pytest.approx((0.0, 0.5, -0.2))  # NED
+    else:
+        assert msg.type_mask & 0b111000000 == 0b111000000
+        assert (msg.afx, msg.afy, msg.afz) == (0.0, 0.0, 0.0)
 
 
 def take_over_after_landing(r: Rig) -> None:

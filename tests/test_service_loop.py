@@ -93,7 +93,7 @@ async def test_ignores_other_systems_until_and_after_lock() -> None:
         assert not ap.setpoints()
 
 
-async def test_guided_engages_and_setpoints_are_position_velocity_yaw() -> None:
+async def test_guided_engages_and_setpoints_are_position_velocity_acceleration_yaw() -> None:
     async with running() as (svc, ap, box):
         await until(lambda: svc.status().configured)
         ap.set_mode(GUIDED)
@@ -104,7 +104,7 @@ async def test_guided_engages_and_setpoints_are_position_velocity_yaw() -> None:
         assert route is not None
         sp = ap.setpoints()[-1].msg
         assert sp.coordinate_frame == 6
-        assert sp.type_mask == TYPE_MASK == 0b1001_1100_0000
+        assert sp.type_mask == TYPE_MASK == 0b1000_0000_0000  # only the yaw rate ignored
         assert sp.type_mask & 512 == 0  # no force bit
         assert (sp.target_system, sp.target_component) == (1, 1)
         assert sp.vx == pytest.approx(0.0, abs=1e-6)  # east 1 m/s = NED (0, 1, 0)

@@ -65,6 +65,39 @@ def test_multicopter_tracks_a_moving_reference() -> None:
     assert abs(lag[-1]) < 0.05
 
 
+def _climb_error(
+    a_mps2: float, feedforward: bool, dt: float = 0.02, seconds: float = 10.0
+) -> float:
+    """How far (m) a multicopter ends below a reference climbing along z = a t^2 / 2."""
+    m = Multicopter(START)
+    accel = np.array([0.0, 0.0, a_mps2 if feedforward else 0.0])
+    steps = round(seconds / dt)
+    for k in range(1, steps + 1):
+        t = k * dt
+        z, vz = 0.5 * a_mps2 * t * t, a_mps2 * t
+        m.step(Setpoint(np.array([0.0, 0.0, z]), np.array([0.0, 0.0, vz]), 0.0, 0.0, accel), dt)
+    return 0.5 * a_mps2 * (steps * dt) ** 2 - float(m.state.position_enu[2])
+
+
+def test_multicopter_follows_a_climbing_reference_without_lag_with_acceleration_feedforward() -> (
+    None
+):
+    """Without the acceleration fed forward, the position gain must pull the reference's
+    acceleration: the error settles a / kp larger. (Both carry the same small lead: each
+    step flies towards the setpoint of the step's end.)"""
+    a = 0.2  # up to 2 m/s in 10 s, within max_climb
+    with_ff, without = _climb_error(a, True), _climb_error(a, False)
+    assert abs(with_ff) < 0.05
+    assert without - with_ff == pytest.approx(a / VehicleModelConfig().kp_per_s2, rel=0.02)
+
+
+def test_multicopter_refuses_a_non_finite_acceleration() -> None:
+    m = Multicopter(START)
+    bad = Setpoint(np.zeros(3), np.zeros(3), 0.0, 0.0, np.array([np.nan, 0.0, 0.0]))
+    with pytest.raises(ValueError, match="acceleration"):
+        m.step(bad, 0.05)
+
+
 def test_multicopter_respects_limits() -> None:
     cfg = VehicleModelConfig(
         model="multicopter", max_speed_mps=2.0, max_climb_mps=1.0, max_accel_mps2=2.5

@@ -84,6 +84,11 @@ from companion.planner.types import (
 _T = TypeVar("_T")
 _TRACK_SPACING_M = 0.5
 _TRACK_MAX_POINTS = 400
+ACCEL_FEEDFORWARD_MAX_MPS2 = 2.0
+"""Cap on the norm of the setpoint's acceleration feed-forward (m/s^2). X_d's own
+acceleration stays far below it (speed ramps at accel_max, turns at lat_accel_max, climbs
+follow the relief: 0.5 m/s^2 at the 99th percentile over the project's scenarios); what it
+clips is the one-cycle jump of a velocity that a re-planned path turns at once."""
 SEARCH_BUDGET_UNITS = 32
 """Work units (candidate corrections tried, `avoidance.detour_search`) a cycle may spend on
 a re-plan. At rest, a search that needs more resumes next cycle where it stopped (while X_d,
@@ -311,6 +316,7 @@ class Planner:
         self._z = float(start[2])
         self._xd_prev = np.array([*route.base_points[0], start[2]])
         self._v = 0.0
+        self._velocity_prev = np.zeros(3)
         self._yaw = route.start_heading_rad
         self._h_d = params.h_d_m
         self._cycle = 0
@@ -421,6 +427,17 @@ class Planner:
         return self._memory.points_xy().copy()
 
     # --- the cycle -------------------------------------------------------------------------
+    def _acceleration(self, velocity: FloatArray, dt_s: float) -> FloatArray:
+        """X_d's acceleration over this cycle (m/s^2, ENU): the change of its velocity, its
+        norm capped at ACCEL_FEEDFORWARD_MAX_MPS2 (a re-planned path turns the velocity at
+        once, which no vehicle follows within a cycle)."""
+        a = (velocity - self._velocity_prev) / dt_s
+        self._velocity_prev = velocity
+        n = math.sqrt(float(a.dot(a)))
+        if n > ACCEL_FEEDFORWARD_MAX_MPS2:
+            a *= ACCEL_FEEDFORWARD_MAX_MPS2 / n
+        return a
+
     def step(self, state: VehicleState, ranges_m: FloatArray, dt_s: float) -> StepResult:
         """One planner cycle. ranges_m: (n,) metres in sensor-table order; 0, NaN, below min
         or at/over max mean "nothing detected". dt_s: sampling period, seconds."""
@@ -546,6 +563,7 @@ class Planner:
                 self._v * math.sin(phi_d),
             ]
         )
+        acceleration = self._acceleration(velocity, dt_s)
         self._record_track(x, y)
         self._xd_prev = x_d
 
@@ -566,7 +584,7 @@ class Planner:
             and lag <= 0.5 * params.leash_m
         )
         x_d.setflags(write=False)
-        setpoint = Setpoint(x_d, velocity, self._yaw, phi_d)
+        setpoint = Setpoint(x_d, velocity, self._yaw, phi_d, acceleration)
         diagnostics = Diagnostics(
             decision=decision,
             mode=self._mode,

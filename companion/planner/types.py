@@ -85,12 +85,14 @@ class Setpoint:
     position_enu: X_d, metres, local ENU. velocity_enu: feed-forward velocity of X_d, m/s.
     yaw_rad: heading of the horizontal path's tangent (ENU, from +x, CCW).
     pitch_rad: phi_d of eq. (4), the desired pitch of the climb, radians.
+    acceleration_enu: feed-forward acceleration of X_d, m/s^2, local ENU (zeros: none).
     """
 
     position_enu: FloatArray
     velocity_enu: FloatArray
     yaw_rad: float
     pitch_rad: float
+    acceleration_enu: FloatArray = field(default_factory=lambda: np.zeros(3))
 
 
 @dataclass(frozen=True, slots=True)

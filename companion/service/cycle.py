@@ -119,6 +119,7 @@ class ControlCycle:
         self._stop_since: float | None = None
         """Service time the current STOP began while commanding (None when not stopped)."""
         self.min_engage_height_m = cfg.control.min_engage_height_m
+        self.acceleration_feedforward = cfg.autopilot.acceleration_feedforward
         self._mode_key: tuple[Any, ...] | None = None
         self._mode: VehicleMode | None = None
         """The vehicle mode of the last heartbeat seen by `update_ownership`, and its key."""
@@ -248,6 +249,7 @@ class ControlCycle:
             sp.position_enu,
             sp.velocity_enu,
             sp.yaw_rad,
+            sp.acceleration_enu if self.acceleration_feedforward else None,
             frame=frame,
             mav_frame=mav_frame,
             home_alt_amsl_m=home.alt_amsl_m,
@@ -349,6 +351,7 @@ class ControlCycle:
             else {
                 "p": floats(sp.position_enu),
                 "v": floats(sp.velocity_enu),
+                "a": floats(sp.acceleration_enu),
                 "yaw": sp.yaw_rad,
                 "pitch": sp.pitch_rad,
             },

@@ -7,8 +7,8 @@ file is a header record; then records by `type`:
     {"type": "frame", "t": .., "origin": [lat, lon, alt_amsl], "route": [[x, y], ...]}
     {"type": "cycle", "t": s, "health": "active", "own": "engaged", "verdict": "run",
      "reason": "", "pos": [x, y, z] | null, "rpy": [roll, pitch, yaw] | null,
-     "ranges": [m | null, ...], "sp": {"p": [x, y, z], "v": [vx, vy, vz], "yaw": rad,
-     "pitch": rad} | null, "sp_kind": "planner" | "hold" | "brake" | "prime" | null,
+     "ranges": [m | null, ...], "sp": {"p": [x, y, z], "v": [vx, vy, vz], "a": [ax, ay, az],
+     "yaw": rad, "pitch": rad} | null, "sp_kind": "planner" | "hold" | "brake" | "prime" | null,
      "decision": str | null, "mode": str | null, "side": str | null,
      "min_range": m | null, "phi_star": [rad, ...] | null, "phi_star_threshold": [rad, ...]
      | null, "phi_d": rad | null, "v_ref": m/s | null, "replanned": bool, "finished": bool,

@@ -117,11 +117,13 @@ def height_only(old: PlannerParams, new: PlannerParams) -> bool:
 
 
 def finite_setpoint(sp: Setpoint) -> bool:
-    """True when position, velocity and yaw are all finite (the only setpoints sent)."""
-    # element by element: cheaper than numpy's reductions for two 3-vectors
+    """True when position, velocity, acceleration and yaw are all finite (the only setpoints
+    sent)."""
+    # element by element: cheaper than numpy's reductions for three 3-vectors
     return (
         all(map(math.isfinite, sp.position_enu))
         and all(map(math.isfinite, sp.velocity_enu))
+        and all(map(math.isfinite, sp.acceleration_enu))
         and math.isfinite(sp.yaw_rad)
     )
 
@@ -417,7 +419,13 @@ class PlannerHost:
         if not self._shifted:
             return result
         sp = result.setpoint
-        moved = Setpoint(sp.position_enu + self.shift, sp.velocity_enu, sp.yaw_rad, sp.pitch_rad)
+        moved = Setpoint(
+            sp.position_enu + self.shift,
+            sp.velocity_enu,
+            sp.yaw_rad,
+            sp.pitch_rad,
+            sp.acceleration_enu,
+        )
         return StepResult(moved, result.diagnostics)
 
     def _start_planner(self, state: VehicleState) -> None:

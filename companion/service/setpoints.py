@@ -1,6 +1,9 @@
 """Planner setpoints (local ENU) -> SET_POSITION_TARGET_GLOBAL_INT.
 
-Position + velocity feed-forward + yaw; acceleration and yaw rate ignored; no force bit.
+Position + velocity and acceleration feed-forward + yaw; yaw rate ignored; no force bit.
+ArduCopter GUIDED (pos+vel+accel) and PX4 OFFBOARD both take the acceleration as
+feed-forward to their position controllers; without it (`acceleration_enu=None`) it is
+masked out.
 Frames: MAV_FRAME_GLOBAL_INT (5, altitude AMSL) or MAV_FRAME_GLOBAL_RELATIVE_ALT_INT (6,
 altitude above the autopilot's current home). Never a terrain frame: ArduCopter rejects
 position+velocity there and, without terrain data, has flown into the ground. The local
@@ -11,6 +14,8 @@ taken against the autopilot's *current* home altitude, which is what frame 6 mea
 from __future__ import annotations
 
 import enum
+
+import numpy as np
 
 from companion.geo import LocalFrame
 from companion.planner.frames import enu_to_ned, yaw_enu_to_ned
@@ -26,8 +31,10 @@ IGNORE_ACCELERATION: int = (
     | mavlink2.POSITION_TARGET_TYPEMASK_AZ_IGNORE
 )
 IGNORE_YAW_RATE: int = mavlink2.POSITION_TARGET_TYPEMASK_YAW_RATE_IGNORE
-TYPE_MASK = IGNORE_ACCELERATION | IGNORE_YAW_RATE
-"""Use position, velocity and yaw; ignore acceleration and yaw rate; no FORCE_SET (512)."""
+TYPE_MASK = IGNORE_YAW_RATE
+"""Use position, velocity, acceleration and yaw; ignore yaw rate; no FORCE_SET (512)."""
+TYPE_MASK_NO_ACCELERATION = IGNORE_ACCELERATION | IGNORE_YAW_RATE
+"""Position, velocity and yaw only."""
 
 
 class SetpointFrame(enum.IntEnum):
@@ -39,6 +46,7 @@ def position_target(
     position_enu: FloatArray,
     velocity_enu: FloatArray,
     yaw_enu_rad: float,
+    acceleration_enu: FloatArray | None = None,
     *,
     frame: LocalFrame,
     mav_frame: SetpointFrame,
@@ -47,25 +55,30 @@ def position_target(
     target_system: int,
     target_component: int,
 ) -> MAVLinkMessage:
-    """The SET_POSITION_TARGET_GLOBAL_INT for a setpoint in `frame` (ENU metres, m/s, rad)."""
+    """The SET_POSITION_TARGET_GLOBAL_INT for a setpoint in `frame` (ENU metres, m/s, m/s^2,
+    rad); acceleration_enu None: acceleration masked out."""
     geo = frame.to_geodetic(float(position_enu[0]), float(position_enu[1]), float(position_enu[2]))
     alt = geo.alt_m if mav_frame is SetpointFrame.GLOBAL else geo.alt_m - home_alt_amsl_m
     v_ned = enu_to_ned(velocity_enu)
+    if acceleration_enu is None:
+        mask, a_ned = TYPE_MASK_NO_ACCELERATION, np.zeros(3)
+    else:
+        mask, a_ned = TYPE_MASK, enu_to_ned(acceleration_enu)
     return mavlink2.MAVLink_set_position_target_global_int_message(
         time_boot_ms & 0xFFFFFFFF,
         target_system,
         target_component,
         int(mav_frame),
-        TYPE_MASK,
+        mask,
         round(geo.lat_deg * 1e7),
         round(geo.lon_deg * 1e7),
         float(alt),
         float(v_ned[0]),
         float(v_ned[1]),
         float(v_ned[2]),
-        0.0,
-        0.0,
-        0.0,
+        float(a_ned[0]),
+        float(a_ned[1]),
+        float(a_ned[2]),
         float(yaw_enu_to_ned(yaw_enu_rad)),
         0.0,
     )

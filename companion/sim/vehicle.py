@@ -67,9 +67,9 @@ class VehicleModelConfig(BaseModel):
     """Which vehicle model flies the setpoints, and the multicopter's gains and limits.
 
     kp_per_s2: position gain (1/s^2); kv_per_s: velocity gain (1/s). Limits in m/s, m/s^2
-    and rad/s. The multicopter's tracking of a constant-velocity reference has no
-    steady-state lag (velocity feed-forward); its error dynamics are
-    e'' + kv e' + kp e = 0.
+    and rad/s. With the reference's velocity and acceleration fed forward the multicopter
+    tracks it without steady-state lag; its error dynamics are e'' + kv e' + kp e = 0 (a
+    reference accelerating at a with no acceleration given lags by a / kp).
     """
 
     model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
@@ -121,7 +121,7 @@ class IdealTracker:
 class Multicopter:
     """Point-mass multicopter with a position + velocity tracking controller.
 
-    Each substep (<= MAX_SUBSTEP_S): a = kp (X_d - x) + kv (v_ff - v), norm clipped to
+    Each substep (<= MAX_SUBSTEP_S): a = a_ff + kp (X_d - x) + kv (v_ff - v), norm clipped to
     max_accel; semi-implicit Euler v += a dt (horizontal speed clipped to max_speed,
     vertical to max_climb), x += v dt. Yaw turns towards setpoint.yaw_rad at no more than
     max_yaw_rate. Attitude from the step's mean horizontal acceleration in the heading frame:
@@ -164,14 +164,15 @@ class Multicopter:
         c = self.config
         x_d = np.asarray(setpoint.position_enu, dtype=np.float64).reshape(3)
         v_ff = np.asarray(setpoint.velocity_enu, dtype=np.float64).reshape(3)
-        if not (np.isfinite(x_d).all() and np.isfinite(v_ff).all()):
-            raise ValueError("setpoint position and velocity must be finite")
+        a_ff = np.asarray(setpoint.acceleration_enu, dtype=np.float64).reshape(3)
+        if not (np.isfinite(x_d).all() and np.isfinite(v_ff).all() and np.isfinite(a_ff).all()):
+            raise ValueError("setpoint position, velocity and acceleration must be finite")
         n = max(1, math.ceil(dt / MAX_SUBSTEP_S - 1e-9))
         h = dt / n
         max_dyaw = c.max_yaw_rate_rad_s * h
         v_start = self._vel.copy()
         for _ in range(n):
-            a = c.kp_per_s2 * (x_d - self._pos) + c.kv_per_s * (v_ff - self._vel)
+            a = a_ff + c.kp_per_s2 * (x_d - self._pos) + c.kv_per_s * (v_ff - self._vel)
             a_norm = norm(a)
             if a_norm > c.max_accel_mps2:
                 a *= c.max_accel_mps2 / a_norm

@@ -364,6 +364,7 @@ class Autopilot:
             velocity_enu=self.shaper.velocity.copy(),
             yaw_rad=self.shaper.yaw_rad,
             pitch_rad=0.0,
+            acceleration_enu=self.shaper.acceleration.copy(),
         )
 
     def _fall(self, dt_s: float, state: VehicleState) -> Setpoint | None:
@@ -473,8 +474,13 @@ class Autopilot:
                 self.shaper.position, self.shaper.velocity, self.cfg.limits.accel_mps2
             )
             return self.hold_target, None, t.yaw_enu_rad, None
-        # ArduCopter integrates the position target along the velocity until the timeout.
+        # ArduCopter integrates the position target along the velocity (and the velocity
+        # along the acceleration) until the timeout.
         moved = min(age, timeout)
         position = t.position_enu + t.velocity_enu * moved
         velocity = t.velocity_enu if age <= timeout else np.zeros(3)
+        if t.acceleration_enu is not None:
+            position = position + 0.5 * t.acceleration_enu * moved * moved
+            if age <= timeout:
+                velocity = velocity + t.acceleration_enu * moved
         return position, velocity, t.yaw_enu_rad, t.yaw_rate_radps if age <= timeout else None

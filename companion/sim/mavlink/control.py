@@ -41,17 +41,24 @@ def stopping_point(position: FloatArray, velocity: FloatArray, accel_max: float)
 
 
 class ReferenceShaper:
-    """Reference position, velocity and yaw moved towards targets within `limits`."""
+    """Reference position, velocity and yaw moved towards targets within `limits`.
+
+    `acceleration` is the reference's over the last step (m/s^2): what the autopilot feeds
+    forward to the vehicle model, as ArduPilot's and PX4's position controllers feed their
+    shaped reference's acceleration forward.
+    """
 
     def __init__(self, limits: MotionLimits, position_enu: FloatArray, yaw_rad: float) -> None:
         self.limits = limits
         self.position = np.array(position_enu, dtype=np.float64).reshape(3)
         self.velocity = np.zeros(3)
+        self.acceleration = np.zeros(3)
         self.yaw_rad = float(yaw_rad)
 
     def reset(self, position_enu: FloatArray, yaw_rad: float) -> None:
         self.position = np.array(position_enu, dtype=np.float64).reshape(3)
         self.velocity = np.zeros(3)
+        self.acceleration = np.zeros(3)
         self.yaw_rad = float(yaw_rad)
 
     def step(
@@ -88,6 +95,7 @@ class ReferenceShaper:
         if dv_norm > max_dv:
             dv *= max_dv / dv_norm
         self.velocity = self.velocity + dv
+        self.acceleration = dv / dt_s if dt_s > 0.0 else np.zeros(3)
         self.position = self.position + self.velocity * dt_s
 
         max_turn = math.radians(lim.yaw_rate_dps) * dt_s
@@ -103,5 +111,6 @@ class ReferenceShaper:
         if self.position[2] < ground_z:
             self.position[2] = ground_z
             self.velocity[2] = max(self.velocity[2], 0.0)
+            self.acceleration[2] = max(self.acceleration[2], 0.0)
             return True
         return False

@@ -69,7 +69,8 @@ class GuidedTarget:
     """A position and/or velocity target in the world frame.
 
     position_enu: (3,) metres or None; velocity_enu: (3,) m/s or None; yaw_enu_rad: heading
-    (ENU, from +x, CCW) or None; yaw_rate_radps: CCW positive or None; received_s: sim time.
+    (ENU, from +x, CCW) or None; yaw_rate_radps: CCW positive or None; received_s: sim time;
+    acceleration_enu: (3,) m/s^2 feed-forward or None.
     """
 
     position_enu: FloatArray | None
@@ -77,6 +78,7 @@ class GuidedTarget:
     yaw_enu_rad: float | None
     yaw_rate_radps: float | None
     received_s: float
+    acceleration_enu: FloatArray | None = None
 
 
 @dataclass(frozen=True, slots=True)
@@ -122,6 +124,10 @@ def _velocity(msg: Any) -> FloatArray:
     return ned_to_enu(np.array([msg.vx, msg.vy, msg.vz], dtype=np.float64))
 
 
+def _acceleration(msg: Any) -> FloatArray:
+    return ned_to_enu(np.array([msg.afx, msg.afy, msg.afz], dtype=np.float64))
+
+
 def decode_ardupilot(msg: Any, ctx: FrameContext, now_s: float) -> Decision:
     """ArduCopter's reading of SET_POSITION_TARGET_GLOBAL_INT (see module docstring)."""
     mask = int(msg.type_mask)
@@ -157,6 +163,12 @@ def decode_ardupilot(msg: Any, ctx: FrameContext, now_s: float) -> Decision:
         if not (np.all(np.isfinite(velocity)) and np.all(np.abs(velocity) < 1000.0)):
             return Decision(Outcome.STOP, reason="invalid velocity")
 
+    acceleration = None
+    if not acc_ignore:
+        acceleration = _acceleration(msg)
+        if not (np.all(np.isfinite(acceleration)) and np.all(np.abs(acceleration) < 1000.0)):
+            return Decision(Outcome.STOP, reason="invalid acceleration")
+
     yaw, yaw_rate = _yaw(msg)
     if position is not None and velocity is not None:
         if frame in FRAMES_TERRAIN:
@@ -168,7 +180,8 @@ def decode_ardupilot(msg: Any, ctx: FrameContext, now_s: float) -> Decision:
         return Decision(Outcome.STOP, reason=reason)
     elif position is not None and not acc_ignore:
         return Decision(Outcome.STOP, reason="position+acceleration without velocity")
-    return Decision(Outcome.ACCEPT, GuidedTarget(position, velocity, yaw, yaw_rate, now_s))
+    target = GuidedTarget(position, velocity, yaw, yaw_rate, now_s, acceleration)
+    return Decision(Outcome.ACCEPT, target)
 
 
 def decode_px4(msg: Any, ctx: FrameContext, now_s: float) -> Decision:
@@ -198,5 +211,9 @@ def decode_px4(msg: Any, ctx: FrameContext, now_s: float) -> Decision:
     velocity = None if mask & VEL_IGNORE else _velocity(msg)
     if position is None and velocity is None:
         return Decision(Outcome.IGNORE, reason="neither position nor velocity given")
+    acceleration = None if mask & ACC_IGNORE else _acceleration(msg)
+    if acceleration is not None and not np.isfinite(acceleration).all():
+        acceleration = None
     yaw, yaw_rate = _yaw(msg)
-    return Decision(Outcome.ACCEPT, GuidedTarget(position, velocity, yaw, yaw_rate, now_s))
+    target = GuidedTarget(position, velocity, yaw, yaw_rate, now_s, acceleration)
+    return Decision(Outcome.ACCEPT, target)
