@@ -216,9 +216,10 @@ def test_flight_on_px4(runs: dict[str, Any]) -> None:
 
 
 PX4_STOP = (
-    "PX4 with SIH physics runs about 0.5 m past a stop before it comes back, and the planner "
-    "stops X_d D_min + margin/2 (0.3 m more) from the memory: a stop next to an obstacle can "
-    "end inside D_min. Single flights kept 3.04-3.39 m (sharp hill passed on the left); in a "
+    "PX4 with SIH physics runs past a stop before it comes back (0.6 m; 0.38 m with the "
+    "acceleration fed forward), and the planner stops X_d D_min + margin/2 (0.3 m more) from "
+    "the memory: a stop next to an obstacle can end inside D_min. Single flights kept "
+    "3.04-3.40 m (sharp hill passed on the left); in a "
     "clean-clone run beside four ArduCopter flights the sharp hill was passed on the right "
     "after two stops and back-outs, at 1.96 m"
 )
