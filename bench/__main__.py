@@ -52,7 +52,8 @@ def main(argv: list[str] | None = None) -> int:
         log("service over UDP: real time (about a minute), lockstep for a simulated hour")
         sections.append(service.run(quick))
     if "sweep" in only:
-        log(f"random-world sweep: a pool of {sweep.WORKERS} workers against 1")
+        against = "" if quick else " against 1"
+        log(f"random-world sweep: a pool of {sweep.WORKERS} workers{against}")
         sections.append(sweep.run(quick))
     meta["wall_s"] = round(time.perf_counter() - started, 1)
     meta["quick"] = quick

@@ -5,8 +5,10 @@ not search for a correction, pooled over `runs` flights; and the same cycles rep
 their recorded inputs, the least of 5 replays per cycle (the machine's interruptions
 removed: steadier on a busy machine, and a floor for the pooled figures).
 Re-plan: the cycles that searched (a correction accepted, none found and the planner
-blocked, or a search that used its budget and goes on next cycle), from every scenario, and
-the paper's re-plan cycles replayed `replays` times each from a deep copy of the planner.
+blocked, or a search that used its budget and goes on next cycle), from every scenario (flown
+two at a time, each in its own process on its own core where the machine has two: every
+step's duration is its own process's), and the paper's re-plan cycles replayed `replays`
+times each from a deep copy of the planner.
 The work units a cycle spends searching (candidate corrections tried) are counted too: a
 bound that does not depend on the machine (`planner.SEARCH_BUDGET_UNITS`).
 
@@ -19,7 +21,9 @@ over the cycles).
 from __future__ import annotations
 
 import copy
+import os
 import time
+from concurrent.futures import ProcessPoolExecutor
 
 import numpy as np
 
@@ -60,6 +64,22 @@ def equations_floor_us(scenario: Scenario, flight: Flight, replays: int = 5) -> 
             decide(steepness(points[obs], points[ground_rows], valid[obs]), limit)
             best[k] = min(best[k], clock() - t0)
     return float(np.median(best)) / 1e3
+
+
+FLIGHT_WORKERS = 2
+
+
+def searching_cycles(name: str) -> tuple[np.ndarray, dict[str, int]]:
+    """One flight of scenario `name`: its searching cycles' step durations (ns) and the
+    search work units it spent (per flight and the most in one cycle)."""
+    f = fly(*load(name), name)
+    _, replan_ns = split(f)
+    spent = np.asarray(f.search_units)
+    return replan_ns, {
+        "search_cycles": int(np.count_nonzero(f.replan)),
+        "units": int(spent.sum()),
+        "max_units_per_cycle": int(spent.max()) if len(spent) else 0,
+    }
 
 
 def run(runs: int = 3, replays: int = 100) -> tuple[Section, Flight]:
@@ -145,17 +165,14 @@ def run(runs: int = 3, replays: int = 100) -> tuple[Section, Flight]:
     per_scenario: dict[str, dict[str, float]] = {}
     pooled: list[np.ndarray] = []
     units: dict[str, dict[str, int]] = {}
-    for name in scenario_names():
-        f = flight if name == "paper" else fly(*load(name), name)
-        _, r = split(f)
-        pooled.append(r)
-        per_scenario[name] = percentiles_us(r)
-        spent = np.asarray(f.search_units)
-        units[name] = {
-            "search_cycles": int(np.count_nonzero(f.replan)),
-            "units": int(spent.sum()),
-            "max_units_per_cycle": int(spent.max()) if len(spent) else 0,
-        }
+    names = scenario_names()
+    workers = min(FLIGHT_WORKERS, os.cpu_count() or 1)
+    with ProcessPoolExecutor(max_workers=workers) as pool:
+        for name, (r, spent) in zip(names, pool.map(searching_cycles, names), strict=True):
+            pooled.append(r)
+            per_scenario[name] = percentiles_us(r)
+            units[name] = spent
+    sec.details["scenario_flight_workers"] = workers
     all_rp = percentiles_us(np.concatenate(pooled))
     sec.details["replan_all_scenarios_us"] = per_scenario
     sec.details["search_units_per_scenario"] = units
