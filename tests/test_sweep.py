@@ -261,6 +261,24 @@ def test_sensor_faults_in_process() -> None:
         assert earlier.all()
 
 
+def test_noise_leaves_nothing_detected_as_nothing() -> None:
+    """A ray that hit nothing reads the max range in the closed loop; noise must not make
+    it a reading just short of it (a phantom 12 m away: on the paper's upward beams, a
+    "steep" point that once filled the memory round every hill and stalled every noisy
+    run). What was measured is still noisy; a spike may still come from nothing."""
+    table = scenario(0, load_scenario_sensors()).sensor_table()
+    nothing = np.array(table.max_range_m, dtype=float)
+    ranges = nothing.copy()
+    ranges[0] = 5.0
+    noisy = _HeldFaults(FAULTS["noise"], table, seed=3)
+    out = np.array([noisy(0.05 * k, ranges) for k in range(200)])
+    assert np.array_equal(out[:, 1:], np.broadcast_to(nothing[1:], out[:, 1:].shape))
+    assert np.std(out[:, 0]) == pytest.approx(0.05, rel=0.3)
+    spikes = _HeldFaults(FAULTS["spikes"], table, seed=3)
+    out = np.array([spikes(0.05 * k, nothing) for k in range(2000)])
+    assert np.any(out < nothing)
+
+
 @pytest.mark.slow
 @pytest.mark.timeout(600)
 def test_faulty_run_is_deterministic() -> None:

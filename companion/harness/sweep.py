@@ -125,16 +125,24 @@ class Task:
 
 class _HeldFaults:
     """Sensor faults in process: an unsent reading leaves the last one delivered in place
-    (what the service's reading store would hold); before any, the sensor's max range."""
+    (what the service's reading store would hold); before any, the sensor's max range.
+
+    A ray that hit nothing (the closed loop reads the max range there) reaches the fault
+    model as the MAVLink simulator's rangefinders give it, inf: noise moves only what was
+    measured, so "nothing" does not turn into a reading just short of the max range (a
+    spike still may, as in the simulator)."""
 
     def __init__(self, configs: Sequence[SensorFaultConfig], sensors: Any, seed: int) -> None:
         rng = np.random.default_rng(np.random.SeedSequence([0x5EED, seed]))
         ids = [s.sensor_id for s in sensors.specs]
         self.faults = SensorFaults(configs, ids, sensors.min_range_m, sensors.max_range_m, rng)
-        self.held = np.array(sensors.max_range_m, dtype=np.float64)
+        self.max_m = np.array(sensors.max_range_m, dtype=np.float64)
+        self.held = self.max_m.copy()
 
     def __call__(self, t_s: float, ranges_m: np.ndarray) -> np.ndarray:
-        out, send = self.faults.apply(t_s, ranges_m)
+        measured = np.where(ranges_m >= self.max_m, np.inf, ranges_m)
+        out, send = self.faults.apply(t_s, measured)
+        out = np.where(np.isfinite(out), out, self.max_m)
         self.held = np.where(send, out, self.held)
         return self.held.copy()
 
