@@ -31,6 +31,7 @@ from companion.harness.sweep import (
     sweep,
     tasks_for,
 )
+from companion.planner import VehicleState
 from companion.sim.scenario import load_scenario
 from companion.sim.worldgen import WorldGenConfig, scenario
 from companion.tuning import SensorConfig
@@ -38,6 +39,7 @@ from companion.tuning import SensorConfig
 # Tiny worlds (one obstacle motif, a 20-30 m route, 30-40 s flown) keep the default suite
 # short: these tests are about the sweep's machinery, whatever the planner makes of them. The
 # full-size sweep with the issue's targets is test_smoke_sweep_targets.
+LEVEL = VehicleState(np.zeros(3), 0.0, 0.0, 0.0)
 SMALL = WorldGenConfig(
     route_length_m=(20.0, 30.0),
     min_leg_m=10.0,
@@ -248,12 +250,12 @@ def test_sensor_faults_in_process() -> None:
     table = scenario(0, load_scenario_sensors()).sensor_table()
     true = np.full(len(table), 5.0)
     noisy = _HeldFaults(FAULTS["noise"], table, seed=1)
-    a = np.array([noisy(0.05 * k, true) for k in range(20)])
+    a = np.array([noisy(0.05 * k, true, LEVEL) for k in range(20)])
     again = _HeldFaults(FAULTS["noise"], table, seed=1)
-    assert np.array_equal(a, np.array([again(0.05 * k, true) for k in range(20)]))
+    assert np.array_equal(a, np.array([again(0.05 * k, true, LEVEL) for k in range(20)]))
     assert np.all(np.abs(a - 5.0) > 0) and np.all(np.abs(a - 5.0) < 0.5)
     drop = _HeldFaults(FAULTS["dropout"], table, seed=2)
-    out = [drop(0.05 * k, true + k) for k in range(200)]
+    out = [drop(0.05 * k, true + k, LEVEL) for k in range(200)]
     held = [k for k in range(1, 200) if np.any(out[k] == out[k - 1])]
     assert held, "a dropped reading holds the previous one"
     for k, o in enumerate(out):  # the reading now, an earlier one, or max range before any
@@ -271,12 +273,43 @@ def test_noise_leaves_nothing_detected_as_nothing() -> None:
     ranges = nothing.copy()
     ranges[0] = 5.0
     noisy = _HeldFaults(FAULTS["noise"], table, seed=3)
-    out = np.array([noisy(0.05 * k, ranges) for k in range(200)])
+    out = np.array([noisy(0.05 * k, ranges, LEVEL) for k in range(200)])
     assert np.array_equal(out[:, 1:], np.broadcast_to(nothing[1:], out[:, 1:].shape))
     assert np.std(out[:, 0]) == pytest.approx(0.05, rel=0.3)
     spikes = _HeldFaults(FAULTS["spikes"], table, seed=3)
-    out = np.array([spikes(0.05 * k, nothing) for k in range(2000)])
+    out = np.array([spikes(0.05 * k, nothing, LEVEL) for k in range(2000)])
     assert np.any(out < nothing)
+
+
+def test_a_held_reading_taken_at_another_attitude_is_not_used() -> None:
+    """As the service pairs each reading with the attitude of its own time and leaves out
+    one taken more than PAIR_TOLERANCE_RAD away from the cycle's: a dropped reading holds
+    the last one delivered while the attitude is the one it was taken at, and reads NaN
+    (not used) while the vehicle is 0.2 rad away from it."""
+    table = scenario(0, load_scenario_sensors()).sensor_table()
+    drop = _HeldFaults(FAULTS["dropout"], table, seed=2)
+    pitched = VehicleState(np.zeros(3), 0.0, 0.2, 0.0)
+    n = len(table)
+    last = np.array(table.max_range_m, dtype=float)  # the last delivered (max before any)
+    last_level = np.zeros(n, dtype=bool)  # ... whether it was taken level
+    ever = np.zeros(n, dtype=bool)  # ... and whether there was one
+    seen = {"held": 0, "not used": 0}
+    for k in range(1, 400):
+        level = k % 2 == 0
+        true = np.full(n, 5.0 + 0.01 * k)
+        out = drop(0.05 * k, true, LEVEL if level else pitched)
+        fresh = out == true
+        held = ~fresh & ~np.isnan(out)
+        assert np.array_equal(out[held], last[held])
+        # held only at the attitude it was taken at (or before any was delivered)
+        assert np.all((last_level == level)[held & ever])
+        assert np.all((last_level != level)[np.isnan(out)]) and np.all(ever[np.isnan(out)])
+        seen["held"] += int(held.sum())
+        seen["not used"] += int(np.isnan(out).sum())
+        last[fresh] = out[fresh]
+        last_level[fresh] = level
+        ever |= fresh
+    assert seen["held"] > 0 and seen["not used"] > 0
 
 
 @pytest.mark.slow

@@ -89,13 +89,14 @@ def run(
     scenario: Scenario,
     world: World,
     progress: Callable[[float, float], None] | None = None,
-    sensor_filter: Callable[[float, np.ndarray], np.ndarray] | None = None,
+    sensor_filter: Callable[[float, np.ndarray, VehicleState], np.ndarray] | None = None,
     stall_stop_s: float | None = None,
 ) -> RunResult:
     """Fly the scenario in process until the goal is reached or duration_s has passed.
 
-    sensor_filter(t_s, true_ranges_m) -> ranges_m: what the planner reads instead of the true
-    ranges (sensor faults); None: the true ranges. stall_stop_s: also stop once the vehicle
+    sensor_filter(t_s, true_ranges_m, state) -> ranges_m: what the planner reads instead of
+    the true ranges (sensor faults), given the vehicle state they were sensed from; None: the
+    true ranges. stall_stop_s: also stop once the vehicle
     has stayed within a 1 m box for this long (s) (None: never).
     """
     params = scenario.params()
@@ -121,7 +122,7 @@ def run(
         t = (k + 1) * dt
         ranges = sense(world, sensors, state, fan)
         if sensor_filter is not None:
-            ranges = sensor_filter(t, ranges)
+            ranges = sensor_filter(t, ranges, state)
         t0 = time.thread_time()
         result: StepResult = planner.step(state, ranges, dt)
         step_times.append(time.thread_time() - t0)

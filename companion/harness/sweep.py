@@ -39,6 +39,8 @@ import numpy as np
 import yaml
 
 from companion.harness.closed_loop import STALL_BOX_M
+from companion.planner.types import VehicleState
+from companion.service.pairing import PAIR_TOLERANCE_RAD
 from companion.sim.mavlink.config import SensorFaultConfig
 from companion.sim.mavlink.faults import SensorFaults
 from companion.sim.vehicle import VehicleModelConfig
@@ -124,8 +126,14 @@ class Task:
 
 
 class _HeldFaults:
-    """Sensor faults in process: an unsent reading leaves the last one delivered in place
-    (what the service's reading store would hold); before any, the sensor's max range.
+    """Sensor faults in process, reaching the planner as they would through the service: a
+    reading not delivered leaves the last one in place (what the service's reading store
+    holds; before any, the sensor's max range), and a held reading whose attitude (roll,
+    pitch or yaw) differs from this cycle's by more than PAIR_TOLERANCE_RAD is not used this
+    cycle (NaN), as the service pairs each reading with the attitude of its own time and
+    drops it then (`companion.service.pairing`). Without that, a reading taken at another
+    pitch became a point in the wrong place as if measured now (0.82 m of height error at a
+    crease with 10 % dropout, 0.11 m through the service).
 
     A ray that hit nothing (the closed loop reads the max range there) reaches the fault
     model as the MAVLink simulator's rangefinders give it, inf: noise moves only what was
@@ -138,13 +146,20 @@ class _HeldFaults:
         self.faults = SensorFaults(configs, ids, sensors.min_range_m, sensors.max_range_m, rng)
         self.max_m = np.array(sensors.max_range_m, dtype=np.float64)
         self.held = self.max_m.copy()
+        self.held_rpy = np.full((len(self.max_m), 3), np.nan)
+        """The attitude each held reading was taken at (NaN before any)."""
 
-    def __call__(self, t_s: float, ranges_m: np.ndarray) -> np.ndarray:
+    def __call__(self, t_s: float, ranges_m: np.ndarray, state: VehicleState) -> np.ndarray:
         measured = np.where(ranges_m >= self.max_m, np.inf, ranges_m)
         out, send = self.faults.apply(t_s, measured)
+        sent = np.asarray(send, dtype=bool)
         out = np.where(np.isfinite(out), out, self.max_m)
-        self.held = np.where(send, out, self.held)
-        return self.held.copy()
+        rpy = np.array([state.roll_rad, state.pitch_rad, state.yaw_rad])
+        self.held = np.where(sent, out, self.held)
+        self.held_rpy[sent] = rpy
+        turned = np.abs(np.angle(np.exp(1j * (self.held_rpy - rpy)))).max(axis=1)
+        stale_pose = ~sent & (turned > PAIR_TOLERANCE_RAD)  # (NaN attitude: never sent)
+        return np.where(stale_pose, np.nan, self.held)
 
 
 def _stop_reason(reached: bool, finished: bool, t: np.ndarray, x: np.ndarray, y: np.ndarray) -> str:
