@@ -449,23 +449,25 @@ def test_ardupilot_arming_takeoff_and_guided_timeout() -> None:
     assert ap.landed and not ap.armed
 
 
-def test_ardupilot_position_velocity_target_is_integrated_until_timeout() -> None:
+def _guided_at_5_m() -> tuple[Autopilot, VehicleState, float]:
+    """An ArduCopter in GUIDED, taken off to 5 m: (autopilot, state, sim time)."""
     ap, state = _autopilot()
     ap.set_mode(ARDUCOPTER.mode("GUIDED"), 1.0, state)
     ap.arm(1.0, state, False)
     ap.takeoff(5.0, False, 1.0, state)
     state, t = _fly(ap, state, 1.0, 6.0)
+    return ap, state, t
+
+
+def test_ardupilot_position_velocity_target_is_integrated_until_timeout() -> None:
+    ap, state, t = _guided_at_5_m()
     ap.position_target(target(6, POS_VEL, 0, 0, 5.0, vel=(1.0, 0, 0)), t)  # north at 1 m/s
     state, t = _fly(ap, state, t, t + 10.0)
     assert state.position_enu[1] == pytest.approx(3.0, abs=0.05)  # integrated for 3 s only
 
 
 def test_ardupilot_integrates_the_acceleration_target_too() -> None:
-    ap, state = _autopilot()
-    ap.set_mode(ARDUCOPTER.mode("GUIDED"), 1.0, state)
-    ap.arm(1.0, state, False)
-    ap.takeoff(5.0, False, 1.0, state)
-    state, t = _fly(ap, state, 1.0, 6.0)
+    ap, state, t = _guided_at_5_m()
     mask = POS_VEL & ~ACC_IGNORE
     ap.position_target(target(6, mask, 0, 0, 5.0, vel=(0, 0, 0), accel=(0.2, 0, 0)), t)
     state, t = _fly(ap, state, t, t + 10.0)

@@ -37,6 +37,10 @@ TYPE_MASK_NO_ACCELERATION = IGNORE_ACCELERATION | IGNORE_YAW_RATE
 """Position, velocity and yaw only."""
 
 
+_NO_ACCELERATION = np.zeros(3)
+_NO_ACCELERATION.setflags(write=False)
+
+
 class SetpointFrame(enum.IntEnum):
     GLOBAL = MAV_FRAME_GLOBAL_INT
     GLOBAL_RELATIVE_ALT = MAV_FRAME_GLOBAL_RELATIVE_ALT_INT
@@ -61,7 +65,7 @@ def position_target(
     alt = geo.alt_m if mav_frame is SetpointFrame.GLOBAL else geo.alt_m - home_alt_amsl_m
     v_ned = enu_to_ned(velocity_enu)
     if acceleration_enu is None:
-        mask, a_ned = TYPE_MASK_NO_ACCELERATION, np.zeros(3)
+        mask, a_ned = TYPE_MASK_NO_ACCELERATION, _NO_ACCELERATION
     else:
         mask, a_ned = TYPE_MASK, enu_to_ned(acceleration_enu)
     return mavlink2.MAVLink_set_position_target_global_int_message(
