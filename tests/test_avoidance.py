@@ -2,12 +2,15 @@
 
 import itertools
 import math
+import subprocess
+import sys
 
 import numpy as np
 import pytest
 
 from companion.planner.avoidance import (
     AvoidanceRequest,
+    _median,
     _start_direction,
     free_intervals,
     max_abs_curvature,
@@ -246,3 +249,33 @@ def test_a_base_point_out_of_reach_is_reported_with_the_distance_it_is_missed_by
             assert beside[0][1] == pytest.approx(miss) and miss > 1.0
         else:
             assert beside == []
+
+
+def test_the_first_search_in_a_process_imports_nothing() -> None:
+    """A module imported on first use inside a re-plan is paid for in flight (numpy.ma, behind
+    np.median's first call, cost about 10 ms): a fresh process's first search imports none."""
+    code = """
+import sys
+import numpy as np
+from companion.planner.avoidance import AvoidanceRequest, plan_detour
+from companion.planner.params import PlannerParams
+from companion.planner.route import Route
+ys = np.arange(-3.0, 1.0 + 1e-9, 0.25)
+pts = np.column_stack([np.full_like(ys, 15.0), ys])
+route = Route(np.array([[0.0, 0.0], [60.0, 0.0]]), 0.0, 0.0)
+req = AvoidanceRequest(start_xy=np.zeros(2), start_dir=np.array([1.0, 0.0]),
+                       conflict_xy=pts, obstacles_xy=pts)
+before = set(sys.modules)
+assert plan_detour(route, req, PlannerParams(d_min_m=2.0, clearance_margin_m=0.6)) is not None
+print(sorted(set(sys.modules) - before))
+"""
+    out = subprocess.run(
+        [sys.executable, "-c", code], capture_output=True, text=True, check=True, timeout=120
+    )
+    assert out.stdout.strip() == "[]"
+
+
+@pytest.mark.parametrize("n", [1, 2, 5, 6, 17])
+def test_median_is_numpys(n: int) -> None:
+    values = np.random.default_rng(n).normal(size=n)
+    assert _median(values) == float(np.median(values))

@@ -418,7 +418,7 @@ def detour_search(
     s0, l0 = float(s0_arr[0]), float(l0_arr[0])
 
     start_clear = float(min_distance(request.start_xy[None, :], obstacles, inflation)[0])
-    seed_mid = float(np.median(l_seed))
+    seed_mid = _median(l_seed)
     across = float(np.min(np.abs(l_seed - l0))) < ACROSS_M
     mode = PathMode.AROUND if across else PathMode.SHIFT
     on_route = abs(l0) < 0.05 and request.start_dir is not None
@@ -902,3 +902,15 @@ def _start_direction(
         [segment_through(start, d, target, target_dir, h, h) for d, h in options]
     )
     return options[int(np.argmin(kappas))]
+
+
+def _median(values: FloatArray) -> float:
+    """The median of a 1-D array, as `np.median` gives it (the mean of the two middle values
+    when their number is even). np.median's first call in a process imports numpy.ma (about
+    10 ms): a re-plan cycle must not pay that in flight."""
+    v = np.sort(values)
+    n = len(v)
+    if n % 2:
+        return float(v[n // 2])
+    return float((v[n // 2 - 1] + v[n // 2]) / 2.0)
+
