@@ -913,4 +913,3 @@ def _median(values: FloatArray) -> float:
     if n % 2:
         return float(v[n // 2])
     return float((v[n // 2 - 1] + v[n // 2]) / 2.0)
-
