@@ -4,6 +4,10 @@ from __future__ import annotations
 
 import csv
 import math
+import signal
+import subprocess
+import sys
+import time
 from collections.abc import Iterator, Sequence
 from pathlib import Path
 from typing import Any
@@ -424,3 +428,62 @@ def test_the_height_target_counts_climbable_mesas_as_relief() -> None:
     assert away.tolist() == [False, True, True, False, True]
     # The rule before: every solid within 2 D_min left the cycle out.
     assert _over_relief(h_err, all_solids, 2.0, 0.15).tolist() == [False, True, False, False, True]
+
+
+def _children(pid: int) -> list[int]:
+    """Live processes whose parent is pid (from /proc)."""
+    out = []
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        try:
+            text = stat.read_text()
+        except OSError:
+            continue
+        fields = text.rsplit(")", 1)[1].split()  # after "pid (comm)": state, ppid, ...
+        if int(fields[1]) == pid and fields[0] != "Z":
+            out.append(int(stat.parent.name))
+    return out
+
+
+def _alive(pid: int) -> bool:
+    try:
+        state = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
+    except OSError:
+        return False
+    return state != "Z"
+
+
+@pytest.mark.skipif(not Path("/proc/self/stat").exists(), reason="reads processes from /proc")
+def test_sigterm_keeps_the_results_and_stops_the_workers(tmp_path: Path) -> None:
+    """SIGTERM (a service manager, a CI timeout) ends a pooled sweep as Ctrl-C does: exit
+    143, the summary written, and no worker left running its world."""
+    out = tmp_path / "sweep"
+    proc = subprocess.Popen(
+        [sys.executable, "-c", "import sys; from companion.cli import main; sys.exit(main())",
+         "sweep", "--seeds", "0:40", "--layout", "paper-11",
+         "--vehicle", "ideal", "--workers", "2", "--no-figures", "--out", str(out)],
+        stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+    )  # fmt: skip
+    try:
+        deadline = time.monotonic() + 120.0
+        workers: list[int] = []
+        while len(workers) < 2 and time.monotonic() < deadline and proc.poll() is None:
+            time.sleep(0.2)
+            # the spawn context's resource tracker is a child too: workers run the pool's main
+            workers = [
+                p
+                for p in _children(proc.pid)
+                if "spawn_main" in Path(f"/proc/{p}/cmdline").read_bytes().decode(errors="replace")
+            ]
+        assert len(workers) == 2, "the pool's two workers did not start"
+        proc.send_signal(signal.SIGTERM)
+        text, _ = proc.communicate(timeout=60.0)  # orphaned workers would hold stdout open
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert proc.returncode == 143, text
+    assert "interrupted" in text
+    assert (out / "results.csv").is_file() and (out / "summary.txt").is_file()
+    deadline = time.monotonic() + 30.0
+    while any(_alive(p) for p in workers) and time.monotonic() < deadline:
+        time.sleep(0.2)
+    assert not any(_alive(p) for p in workers)

@@ -21,6 +21,7 @@ within 2 D_min.
 
 from __future__ import annotations
 
+import contextlib
 import csv
 import importlib.util
 import math
@@ -28,6 +29,7 @@ import multiprocessing
 import signal
 import socket
 import sys
+import threading
 import time
 from collections.abc import Callable, Iterable, Iterator, Sequence
 from concurrent.futures import FIRST_COMPLETED, Future, ProcessPoolExecutor, wait
@@ -636,12 +638,36 @@ def prepare(opts: SweepOptions) -> list[Task]:
     return tasks_for(seeds, layouts, opts.vehicles, opts.faults, opts.gen, figures)
 
 
+class Terminated(KeyboardInterrupt):
+    """SIGTERM (a service manager, a CI timeout, `kill`) taken as Ctrl-C is: the results
+    written so far are kept and the pool's workers are stopped, not left running."""
+
+
+@contextlib.contextmanager
+def _sigterm_as_interrupt() -> Iterator[None]:
+    """Raise Terminated in the main thread on SIGTERM while the sweep runs (elsewhere, or
+    off the main thread, SIGTERM keeps its handler)."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+
+    def handler(signum: int, frame: object) -> None:
+        raise Terminated
+
+    previous = signal.signal(signal.SIGTERM, handler)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+
+
 def sweep(
     opts: SweepOptions,
     stream: TextIO = sys.stdout,
     executor: Callable[[Sequence[Task]], Iterator[dict[str, Any]]] | None = None,
 ) -> int:
-    """Run the sweep; exit code (0 done, 130 interrupted). SweepError for bad input."""
+    """Run the sweep; exit code (0 done, 130 interrupted by Ctrl-C, 143 by SIGTERM).
+    SweepError for bad input."""
     tasks = prepare(opts)
     out = opts.out
     if opts.write_scenarios:
@@ -690,16 +716,16 @@ def sweep(
     failures: list[str] = []
     code = 0
     try:
-        if tasks:
-            for rec in executor(tasks):
+        with _sigterm_as_interrupt():
+            for rec in executor(tasks) if tasks else ():
                 writer.writerow({k: _fmt(v) for k, v in rec.items()})
                 fh.flush()
                 rows.append({k: _fmt(v) for k, v in rec.items()})
                 if _is_failure(rec):
                     failures.append(_report_failure(rec, by_key, out, fail_fh))
                 progress.update(rec)
-    except KeyboardInterrupt:
-        code = 130
+    except KeyboardInterrupt as exc:
+        code = 143 if isinstance(exc, Terminated) else 130
         progress.clear()
         stream.write(f"\ninterrupted: {progress.done} runs of this sweep kept in {csv_path}\n")
     finally:
