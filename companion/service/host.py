@@ -419,13 +419,7 @@ class PlannerHost:
         if not self._shifted:
             return result
         sp = result.setpoint
-        moved = Setpoint(
-            sp.position_enu + self.shift,
-            sp.velocity_enu,
-            sp.yaw_rad,
-            sp.pitch_rad,
-            sp.acceleration_enu,
-        )
+        moved = replace(sp, position_enu=sp.position_enu + self.shift)
         return StepResult(moved, result.diagnostics)
 
     def _start_planner(self, state: VehicleState) -> None:

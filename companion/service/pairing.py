@@ -36,6 +36,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from companion.planner.frames import wrap_pi
 from companion.planner.types import FloatArray
 
 HISTORY_MS = 1000
@@ -65,16 +66,12 @@ class AttitudeSample:
     trusted: bool = True
 
 
-def _wrap(a: float) -> float:
-    return (a + math.pi) % (2.0 * math.pi) - math.pi
-
-
 def angle_gap_rad(a: AttitudeSample, b: AttitudeSample) -> float:
     """The largest of the three Euler angle differences, radians (wrapped)."""
     return max(
-        abs(_wrap(a.roll_rad - b.roll_rad)),
+        abs(wrap_pi(a.roll_rad - b.roll_rad)),
         abs(a.pitch_rad - b.pitch_rad),
-        abs(_wrap(a.yaw_rad - b.yaw_rad)),
+        abs(wrap_pi(a.yaw_rad - b.yaw_rad)),
     )
 
 
@@ -133,9 +130,9 @@ class AttitudeHistory:
                 w = (time_boot_ms - before.time_boot_ms) / gap
                 return AttitudeSample(
                     time_boot_ms,
-                    _wrap(before.roll_rad + w * _wrap(after.roll_rad - before.roll_rad)),
+                    wrap_pi(before.roll_rad + w * wrap_pi(after.roll_rad - before.roll_rad)),
                     before.pitch_rad + w * (after.pitch_rad - before.pitch_rad),
-                    _wrap(before.yaw_rad + w * _wrap(after.yaw_rad - before.yaw_rad)),
+                    wrap_pi(before.yaw_rad + w * wrap_pi(after.yaw_rad - before.yaw_rad)),
                     trusted=before.trusted and after.trusted,
                 )
         near = [s for s in (before, after) if s is not None]
