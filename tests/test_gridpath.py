@@ -122,3 +122,65 @@ def test_sight_lines_in_one_array_are_the_sight_lines_one_by_one() -> None:
         assert grid.clear_lines(a, ends).tolist() == one_by_one
         seen += one_by_one
     assert 0 < sum(seen) < len(seen)  # clear and blocked lines both met
+
+
+def _reference_astar(blocked: np.ndarray, s: tuple[int, int], g: tuple[int, int]):  # type: ignore[no-untyped-def]
+    """A* as written plainly: (ix, iy) cells in dicts, the bounds checked per neighbour,
+    ties broken on insertion order; (cells or None, expansions)."""
+    import heapq
+    import math
+
+    ny, nx = blocked.shape
+    best, parent = {s: 0.0}, {}
+    frontier, count, expanded, done = [(0.0, 0, s)], 1, 0, set()
+    while frontier:
+        _, _, here = heapq.heappop(frontier)
+        if here in done:
+            continue
+        if here == g:
+            path = [here]
+            while path[-1] in parent:
+                path.append(parent[path[-1]])
+            return path[::-1], expanded
+        done.add(here)
+        expanded += 1
+        hx, hy = here
+        for dx, dy in ((1, 0), (-1, 0), (0, 1), (0, -1), (1, 1), (1, -1), (-1, 1), (-1, -1)):
+            cx, cy = hx + dx, hy + dy
+            if not (0 <= cx < nx and 0 <= cy < ny) or blocked[cy, cx]:
+                continue
+            if dx and dy and (blocked[hy, cx] or blocked[cy, hx]):
+                continue
+            cost = best[here] + (math.sqrt(2.0) if dx and dy else 1.0)
+            if cost < best.get((cx, cy), math.inf):
+                best[(cx, cy)], parent[(cx, cy)] = cost, here
+                heapq.heappush(frontier, (cost + math.hypot(g[0] - cx, g[1] - cy), count, (cx, cy)))
+                count += 1
+    return None, expanded
+
+
+def test_the_grid_search_is_a_plain_a_star() -> None:
+    """The search over flat cell indices finds the same cells as a plain A* over (ix, iy)
+    tuples, ties included, and yields once per EXPANSIONS_PER_UNIT expansions; on grids
+    with a walled-off goal, random clutter, points off the grid and a blocked start."""
+    from companion.planner.gridpath import EXPANSIONS_PER_UNIT, _astar, _Grid
+
+    rng = np.random.default_rng(7)
+    found = none = 0
+    for trial in range(40):
+        pts = rng.uniform(-8.0, 48.0, size=(int(rng.integers(0, 300)), 2))
+        if trial % 4 == 0:  # a wall across, with a gap, or closed
+            gap = 4.0 if trial % 8 else 0.0
+            wall = [[20.0, y] for y in np.arange(-25.0, 25.0, 0.25) if abs(y - 5.0) > gap]
+            pts = np.concatenate([pts, np.array(wall)])
+        start, goal = rng.uniform(-3.0, 3.0, 2), rng.uniform(36.0, 42.0, 2)
+        grid = _Grid.around(start, goal, pts, np.zeros(len(pts)), D_M, rng.uniform(0.0, 4.0))
+        if grid.blocked_at(goal):
+            continue
+        cells, units = _run(_astar(grid, start, goal))
+        expected, expanded = _reference_astar(grid.blocked, grid.cell(start), grid.cell(goal))
+        assert cells == expected
+        assert units == expanded // EXPANSIONS_PER_UNIT
+        found += cells is not None
+        none += cells is None
+    assert found > 10 and none > 0
