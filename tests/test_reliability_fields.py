@@ -23,6 +23,7 @@ from typing import Any
 import numpy as np
 import pytest
 
+from companion.config import FailsafeConfig
 from companion.service import Service, memory_pair
 from companion.service.codec import MavCodec, mavlink2
 from companion.service.identity import Health
@@ -339,3 +340,20 @@ def test_median_filter_removes_single_spikes_and_dropouts() -> None:
     assert 0.4 not in seen and 0.0 not in seen[2:]  # the spike and the dropout never show
     assert seen[-1] == 2.5  # a real change comes through one reading later
     assert t.counters["range_filtered"] >= 2
+
+
+def test_spike_filter_passes_noise_and_steady_change_at_once() -> None:
+    """With spike_m (the configured default), a reading within it of the median of the last
+    3 passes as it is, with its own stamp (its attitude is that time's); a spike, a
+    dropout to "nothing" and the first reading of a step are replaced by the median."""
+    t = tel(median_samples=3, spike_m=FailsafeConfig().range_spike_m)
+    readings = [300, 300, 40, 300, 310, 330, 0, 320, 250, 250, 251]
+    seen, stamps = [], []
+    for i, cm in enumerate(readings):
+        t.update(dist(1000 + 20 * i, 1, cm), 1.0 + 0.02 * i)
+        seen.append(t.ranges[1].distance_m)
+        stamps.append(t.ranges[1].time_boot_ms)
+    assert seen == pytest.approx([3.0, 3.0, 3.0, 3.0, 3.1, 3.3, 3.3, 3.2, 3.2, 2.5, 2.51])
+    # passed readings carry their own stamp; a replaced one, the median's
+    assert stamps[4:6] == [1080, 1100] and stamps[6] == 1100 and stamps[8] == 1140
+    assert t.counters["range_filtered"] == 3

@@ -21,6 +21,7 @@ from companion.harness.sweep import (
     DEFAULT_LAYOUTS,
     FAULTS,
     RECORD_FIELDS,
+    SPIKE_M,
     TIMING_FIELDS,
     SweepError,
     SweepOptions,
@@ -36,6 +37,7 @@ from companion.harness.sweep import (
     tasks_for,
 )
 from companion.planner import VehicleState
+from companion.service.telemetry import MEDIAN_GAP_S
 from companion.sim.scenario import load_scenario
 from companion.sim.worldgen import WorldGenConfig, scenario
 from companion.tuning import SensorConfig
@@ -276,13 +278,63 @@ def test_noise_leaves_nothing_detected_as_nothing() -> None:
     nothing = np.array(table.max_range_m, dtype=float)
     ranges = nothing.copy()
     ranges[0] = 5.0
-    noisy = _HeldFaults(FAULTS["noise"], table, seed=3)
-    out = np.array([noisy(0.05 * k, ranges, LEVEL) for k in range(200)])
+    raw = _HeldFaults(FAULTS["noise"], table, seed=3, median_samples=1)
+    out = np.array([raw(0.05 * k, ranges, LEVEL) for k in range(200)])
     assert np.array_equal(out[:, 1:], np.broadcast_to(nothing[1:], out[:, 1:].shape))
     assert np.std(out[:, 0]) == pytest.approx(0.05, rel=0.3)
-    spikes = _HeldFaults(FAULTS["spikes"], table, seed=3)
+    # Through the service's spike filter the noise passes as it is; a plain median of 3
+    # (spike_m 0) would smooth it, each reading up to one reading old.
+    filtered = _HeldFaults(FAULTS["noise"], table, seed=3)
+    out = np.array([filtered(0.05 * k, ranges, LEVEL) for k in range(200)])
+    assert np.array_equal(out[:, 1:], np.broadcast_to(nothing[1:], out[:, 1:].shape))
+    assert np.std(out[:, 0]) == pytest.approx(0.05, rel=0.3)
+    median = _HeldFaults(FAULTS["noise"], table, seed=3, spike_m=0.0)
+    out = np.array([median(0.05 * k, ranges, LEVEL) for k in range(200)])
+    assert 0.01 < np.std(out[:, 0]) < 0.045
+    spikes = _HeldFaults(FAULTS["spikes"], table, seed=3, median_samples=1)
     out = np.array([spikes(0.05 * k, nothing, LEVEL) for k in range(2000)])
     assert np.any(out < nothing)
+    # Through the median only two spikes within three readings of one sensor get out.
+    spikes = _HeldFaults(FAULTS["spikes"], table, seed=3)
+    passed = np.array([spikes(0.05 * k, nothing, LEVEL) for k in range(2000)]) < nothing
+    assert passed.sum() * 10 < (out < nothing).sum()
+
+
+def test_the_spike_filter_is_the_services() -> None:
+    """A delivered reading reaches the planner through the service's spike filter
+    (`Telemetry._filtered`, `spike_filtered`): as it is when it agrees within SPIKE_M with
+    another of the last 3, else their median when that does, else nothing new: one spike
+    never, a step one reading late, "nothing" counting as farthest; what passes keeps the
+    attitude it was taken at, and is not used (NaN) once the vehicle has turned more than
+    PAIR_TOLERANCE_RAD from it; a gap restarts the history."""
+    table = scenario(0, load_scenario_sensors()).sensor_table()
+    n = len(table)
+    none = _HeldFaults((), table, seed=0)
+    ranges = [5.0, 5.0, 5.0, 2.0, 5.0, 5.0, 3.0, 3.0, 3.0, math.inf, 3.0, math.inf, math.inf]
+    ranges += [5.0, 5.0, 5.1, 5.3, 5.0]  # a steady change and noise: at once
+    seen = [float(none(0.05 * k, np.full(n, r), LEVEL)[0]) for k, r in enumerate(ranges)]
+    steps = [5.0, 5.0, 5.0, 5.0, 5.0, 5.0, 5.0, 3.0, 3.0, 3.0, 3.0, 12.0, 12.0]
+    assert seen == [*steps, 12.0, 5.0, 5.1, 5.3, 5.0]
+    assert pytest.approx(0.3) == SPIKE_M
+    # Two spikes in three readings that disagree: nothing new passes (a plain median, with
+    # spike_m 0, lets the nearer one through).
+    ranges = [5.0, 5.0, 5.0, 9.0, 11.0, 5.0, 5.0]
+    for spike_m, expected in ((SPIKE_M, [5.0] * 7), (0.0, [5.0, 5.0, 5.0, 5.0, 9.0, 9.0, 5.0])):
+        two = _HeldFaults((), table, seed=0, spike_m=spike_m)
+        got = [float(two(0.05 * k, np.full(n, r), LEVEL)[0]) for k, r in enumerate(ranges)]
+        assert got == expected
+    # A step taken while pitched reaches a level cycle as the median of its own attitude.
+    turn = _HeldFaults((), table, seed=0)
+    pitched = VehicleState(np.zeros(3), 0.0, 0.2, 0.0)
+    for k, (r, state) in enumerate([(5.0, LEVEL), (4.0, pitched), (3.0, pitched)]):
+        out = turn(0.05 * k, np.full(n, r), state)
+    assert np.all(out == 4.0)  # the median (4.0) was taken pitched, as this cycle is
+    out = turn(0.15, np.full(n, 2.0), LEVEL)
+    assert np.all(np.isnan(out))  # the median (3.0) was taken pitched: not used level
+    out = turn(0.2, np.full(n, 2.0), LEVEL)
+    assert np.all(out == 2.0)
+    # After a gap longer than the service's MEDIAN_GAP_S the history starts afresh.
+    assert np.all(turn(0.2 + MEDIAN_GAP_S + 0.05, np.full(n, 9.0), LEVEL) == 9.0)
 
 
 def test_a_held_reading_taken_at_another_attitude_is_not_used() -> None:
@@ -291,7 +343,7 @@ def test_a_held_reading_taken_at_another_attitude_is_not_used() -> None:
     the last one delivered while the attitude is the one it was taken at, and reads NaN
     (not used) while the vehicle is 0.2 rad away from it."""
     table = scenario(0, load_scenario_sensors()).sensor_table()
-    drop = _HeldFaults(FAULTS["dropout"], table, seed=2)
+    drop = _HeldFaults(FAULTS["dropout"], table, seed=2, median_samples=1)
     pitched = VehicleState(np.zeros(3), 0.0, 0.2, 0.0)
     n = len(table)
     last = np.array(table.max_range_m, dtype=float)  # the last delivered (max before any)

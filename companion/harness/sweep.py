@@ -31,6 +31,7 @@ import socket
 import sys
 import threading
 import time
+from collections import deque
 from collections.abc import Callable, Iterable, Iterator, Sequence
 from concurrent.futures import FIRST_COMPLETED, Future, ProcessPoolExecutor, wait
 from dataclasses import dataclass, field
@@ -40,9 +41,11 @@ from typing import Any, TextIO
 import numpy as np
 import yaml
 
+from companion.config import FailsafeConfig
 from companion.harness.closed_loop import STALL_BOX_M
 from companion.planner.types import VehicleState
 from companion.service.pairing import PAIR_TOLERANCE_RAD
+from companion.service.telemetry import MEDIAN_GAP_S, spike_filtered
 from companion.sim.mavlink.config import SensorFaultConfig
 from companion.sim.mavlink.faults import SensorFaults
 from companion.sim.vehicle import VehicleModelConfig
@@ -59,6 +62,12 @@ FAULTS: dict[str, tuple[SensorFaultConfig, ...]] = {
     "spikes": (SensorFaultConfig(spike_probability=0.01),),
 }
 """Sensor faults applied to every sensor (companion/sim/mavlink's fault model, in process)."""
+
+MEDIAN_SAMPLES = FailsafeConfig().range_median_samples
+SPIKE_M = FailsafeConfig().range_spike_m
+"""The service's spike filter in its default configuration (`spike_filtered`): a reading
+departing from the median of its sensor's last MEDIAN_SAMPLES by more than SPIKE_M metres
+is replaced by that median."""
 
 GENTLE_REACH_H_D = 2.0
 """The height error on gentle relief counts the cycles whose surface within this many H_d
@@ -140,9 +149,24 @@ class _HeldFaults:
     A ray that hit nothing (the closed loop reads the max range there) reaches the fault
     model as the MAVLink simulator's rangefinders give it, inf: noise moves only what was
     measured, so "nothing" does not turn into a reading just short of the max range (a
-    spike still may, as in the simulator)."""
+    spike still may, as in the simulator).
 
-    def __init__(self, configs: Sequence[SensorFaultConfig], sensors: Any, seed: int) -> None:
+    Each delivered reading then passes the service's spike filter (`Telemetry._filtered`,
+    `spike_filtered`, the default configuration): a reading departing from the median of
+    its sensor's last readings ("nothing" counting as farthest) by more than SPIKE_M is
+    replaced by that median, which carries the attitude it was taken at, or by nothing new
+    where the readings disagree (the last one passed holds); the history restarts after a
+    gap of MEDIAN_GAP_S. A single spike never reaches the planner, as
+    through the service; a step arrives (n - 1) / 2 readings late, as it does there."""
+
+    def __init__(
+        self,
+        configs: Sequence[SensorFaultConfig],
+        sensors: Any,
+        seed: int,
+        median_samples: int = MEDIAN_SAMPLES,
+        spike_m: float = SPIKE_M,
+    ) -> None:
         rng = np.random.default_rng(np.random.SeedSequence([0x5EED, seed]))
         ids = [s.sensor_id for s in sensors.specs]
         self.faults = SensorFaults(configs, ids, sensors.min_range_m, sensors.max_range_m, rng)
@@ -150,18 +174,46 @@ class _HeldFaults:
         self.held = self.max_m.copy()
         self.held_rpy = np.full((len(self.max_m), 3), np.nan)
         """The attitude each held reading was taken at (NaN before any)."""
+        self.median_samples = median_samples
+        self.spike_m = spike_m
+        self.history: list[deque[tuple[float, float, np.ndarray, float]]] = [
+            deque(maxlen=median_samples) for _ in range(len(self.max_m))
+        ]
+        """Per sensor: its last delivered readings as (sort key, range, attitude, time)."""
 
     def __call__(self, t_s: float, ranges_m: np.ndarray, state: VehicleState) -> np.ndarray:
         measured = np.where(ranges_m >= self.max_m, np.inf, ranges_m)
         out, send = self.faults.apply(t_s, measured)
         sent = np.asarray(send, dtype=bool)
+        keys = np.where(np.isfinite(out), out, np.inf)
         out = np.where(np.isfinite(out), out, self.max_m)
         rpy = np.array([state.roll_rad, state.pitch_rad, state.yaw_rad])
-        self.held = np.where(sent, out, self.held)
-        self.held_rpy[sent] = rpy
+        for i in np.flatnonzero(sent).tolist():
+            passed = self._filtered(i, (float(keys[i]), float(out[i]), rpy, t_s))
+            if passed is not None:  # (None: the last one passed holds)
+                self.held[i], self.held_rpy[i] = passed
         turned = np.abs(np.angle(np.exp(1j * (self.held_rpy - rpy)))).max(axis=1)
-        stale_pose = ~sent & (turned > PAIR_TOLERANCE_RAD)  # (NaN attitude: never sent)
+        # A held reading, or a median taken at another attitude (NaN attitude: never sent).
+        stale_pose = turned > PAIR_TOLERANCE_RAD
         return np.where(stale_pose, np.nan, self.held)
+
+    def _filtered(
+        self, i: int, reading: tuple[float, float, np.ndarray, float]
+    ) -> tuple[float, np.ndarray] | None:
+        """Sensor i's value and attitude after the spike filter, given its new reading; None
+        where the filter passes none on."""
+        if self.median_samples <= 1:
+            return reading[1], reading[2]
+        history = self.history[i]
+        if history and reading[3] - history[-1][3] > MEDIAN_GAP_S:
+            history.clear()
+        history.append(reading)
+        if len(history) < self.median_samples:
+            return reading[1], reading[2]
+        k = spike_filtered([r[0] for r in history], self.spike_m)
+        if k is None:
+            return None
+        return history[k][1], history[k][2]
 
 
 def _stop_reason(reached: bool, finished: bool, t: np.ndarray, x: np.ndarray, y: np.ndarray) -> str:

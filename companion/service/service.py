@@ -139,6 +139,7 @@ class Service:
             max_jump_m=fs.max_position_jump_m,
             max_accepted_jump_m=fs.max_accepted_jump_m,
             median_samples=fs.range_median_samples,
+            spike_m=fs.range_spike_m,
         )
         ap = config.autopilot
         self.commands = CommandClient(self.conn, ap.command_timeout_s, ap.command_retries)

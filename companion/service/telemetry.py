@@ -27,9 +27,9 @@ from __future__ import annotations
 import bisect
 import logging
 import math
-import operator
 import statistics
 from collections import Counter, deque
+from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -224,9 +224,11 @@ class Telemetry:
         max_jump_m: float = 2.0,
         median_samples: int = 1,
         max_accepted_jump_m: float = 50.0,
+        spike_m: float = 0.0,
     ) -> None:
         self.sensors = sensors
         self.median_samples = median_samples
+        self.spike_m = spike_m
         self.max_speed_mps = max_speed_mps
         self.jump_accept_s = jump_accept_s
         self.max_jump_m = max_jump_m
@@ -692,9 +694,11 @@ class Telemetry:
         return True
 
     def _filtered(self, index: int, reading: RangeReading) -> RangeReading:
-        """The median of the sensor's last `median_samples` readings (0.0 = nothing, counted
-        as farther than any distance), so a single-reading spike or dropout never reaches
-        the planner; the history restarts after a gap of MEDIAN_GAP_S."""
+        """The reading passed on for this one (`spike_filtered` over the sensor's last
+        `median_samples` readings, 0.0 = nothing counted as farther than any distance):
+        itself, their median, or the one passed on before (with its own receipt time, so
+        readings that keep disagreeing go stale), so a single-reading spike or dropout
+        never reaches the planner; the history restarts after a gap of MEDIAN_GAP_S."""
         n = self.median_samples
         if n <= 1:
             return reading
@@ -705,7 +709,12 @@ class Telemetry:
         history.append((d if d > 0 else math.inf, reading))
         if len(history) < n:
             return reading
-        median = sorted(history, key=_FIRST)[n // 2][1]
+        k = spike_filtered([key for key, _ in history], self.spike_m)
+        if k is None:  # the readings disagree: the last one passed on holds (it ages)
+            self._count("range_filtered")
+            held = self.ranges[index]
+            return held if held is not None else reading
+        median = history[k][1]
         if median is reading:
             return reading
         if median.distance_m != reading.distance_m:
@@ -761,7 +770,34 @@ class Telemetry:
         ]
 
 
-_FIRST = operator.itemgetter(0)
+def spike_filtered(keys: Sequence[float], spike_m: float) -> int | None:
+    """Which of a sensor's last readings (distances oldest first, "nothing" as inf, at
+    least one) reaches the planner; None: none (the last one passed on holds).
+
+    A reading agrees with another within spike_m metres (two "nothing"s agree). The newest
+    passes when it agrees with at least max(1, (n - 1) // 2) of the others; else their
+    median (the upper of the two middle ones for an even count; ties to the older) when
+    it does; else none. Noise and a steady change pass at once, with the attitude and
+    position of their own time; a single spike or dropout never gets through, nor do two
+    spikes that disagree; a real step arrives once enough readings agree, (n - 1) / 2
+    readings late. With spike_m 0 it is a plain median filter (the newest when it equals
+    the median): each reading up to (n - 1) / 2 readings old, measured from where the
+    vehicle was then, not where it is."""
+    n = len(keys)
+    newest = n - 1
+    if n == 1:
+        return newest
+    median = sorted(range(n), key=keys.__getitem__)[n // 2]
+    if spike_m <= 0.0:
+        return newest if keys[newest] == keys[median] else median
+    need = max(1, (n - 1) // 2)
+    for k in (newest, median):
+        x = keys[k]
+        agree = sum(1 for j, y in enumerate(keys) if j != k and (x == y or abs(x - y) <= spike_m))
+        if agree >= need:
+            return k
+    return None
+
 
 _HANDLERS = {
     "HEARTBEAT": Telemetry._heartbeat,
