@@ -267,16 +267,17 @@ class FailsafeConfig(Section):
     max_accepted_jump_m: a jump that persists is accepted as an estimator reset (the plan
     moves with it) only up to this size; a larger one is a fault: the service stops
     commanding, says why, and stays stopped until the position is back near the last good one.
-    range_median_samples: a range reading that departs by more than range_spike_m from the
-    median of its sensor's last this many readings ("nothing detected" counting as
-    farthest) is replaced by that median: a single spike or dropout of one reading never
-    reaches the planner, and a real step arrives (n - 1) / 2 readings late. 1: off.
-    range_spike_m: how far a reading may depart from that median and still pass as it is,
-    metres: above the sensors' noise and the change of a range between two readings in
-    flight. Readings within it reach the planner at once, with the attitude and position
-    of their own time; 0 makes a plain median filter, whose readings are up to (n - 1) / 2
-    readings old and are placed from where the vehicle is now (with 0.05 m of noise it
-    raised the height error's p95 from 0.041 to 0.064 m: docs/reliability.md).
+    range_median_samples: a range reading that agrees within range_spike_m with none of its
+    sensor's last this many readings ("nothing detected" counting as farthest), and does
+    not continue the line through the two before it, is replaced by their median (or by
+    nothing new, the last reading passed holding, when that agrees with none either): a
+    single spike or dropout of one reading never reaches the planner, and a real step
+    arrives (n - 1) / 2 readings late. 1: off.
+    range_spike_m: that agreement, metres: above the sensors' noise. Every other reading
+    reaches the planner at once, with the attitude and position of its own time; 0 makes a
+    plain median filter, whose readings are up to (n - 1) / 2 readings old and are placed
+    from where the vehicle is now (with 0.05 m of noise it raised the height error's p95
+    from 0.041 to 0.064 m: docs/service.md).
     """
 
     position_max_age_s: Positive = 0.5

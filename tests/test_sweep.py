@@ -323,16 +323,20 @@ def test_the_spike_filter_is_the_services() -> None:
         two = _HeldFaults((), table, seed=0, spike_m=spike_m)
         got = [float(two(0.05 * k, np.full(n, r), LEVEL)[0]) for k, r in enumerate(ranges)]
         assert got == expected
-    # A step taken while pitched reaches a level cycle as the median of its own attitude.
+    # A steady change passes at once, however fast (it continues the two before it).
+    fast = _HeldFaults((), table, seed=0)
+    ranges = [5.0, 5.5, 6.0, 6.5, 7.0]
+    assert [float(fast(0.05 * k, np.full(n, r), LEVEL)[0]) for k, r in enumerate(ranges)] == ranges
+    # What passes keeps the attitude it was taken at.
     turn = _HeldFaults((), table, seed=0)
     pitched = VehicleState(np.zeros(3), 0.0, 0.2, 0.0)
-    for k, (r, state) in enumerate([(5.0, LEVEL), (4.0, pitched), (3.0, pitched)]):
+    for k, (r, state) in enumerate([(5.0, LEVEL), (5.0, pitched), (9.0, pitched)]):
         out = turn(0.05 * k, np.full(n, r), state)
-    assert np.all(out == 4.0)  # the median (4.0) was taken pitched, as this cycle is
-    out = turn(0.15, np.full(n, 2.0), LEVEL)
-    assert np.all(np.isnan(out))  # the median (3.0) was taken pitched: not used level
-    out = turn(0.2, np.full(n, 2.0), LEVEL)
-    assert np.all(out == 2.0)
+    assert np.all(out == 5.0)  # the median (5.0) was taken pitched, as this cycle is
+    out = turn(0.15, np.full(n, 7.5), LEVEL)
+    assert np.all(np.isnan(out))  # none agrees: the last passed (pitched) holds, not used level
+    out = turn(0.2, np.full(n, 7.5), LEVEL)
+    assert np.all(out == 7.5)
     # After a gap longer than the service's MEDIAN_GAP_S the history starts afresh.
     assert np.all(turn(0.2 + MEDIAN_GAP_S + 0.05, np.full(n, 9.0), LEVEL) == 9.0)
 

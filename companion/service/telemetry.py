@@ -775,9 +775,10 @@ def spike_filtered(keys: Sequence[float], spike_m: float) -> int | None:
     least one) reaches the planner; None: none (the last one passed on holds).
 
     A reading agrees with another within spike_m metres (two "nothing"s agree). The newest
-    passes when it agrees with at least max(1, (n - 1) // 2) of the others; else their
-    median (the upper of the two middle ones for an even count; ties to the older) when
-    it does; else none. Noise and a steady change pass at once, with the attitude and
+    passes when it continues the line through the two before it within spike_m, or agrees
+    with at least max(1, (n - 1) // 2) of the others; else their median (the upper of the
+    two middle ones for an even count; ties to the older) when it agrees so; else none.
+    Noise and a steady change, however fast, pass at once, with the attitude and
     position of their own time; a single spike or dropout never gets through, nor do two
     spikes that disagree; a real step arrives once enough readings agree, (n - 1) / 2
     readings late. With spike_m 0 it is a plain median filter (the newest when it equals
@@ -790,6 +791,12 @@ def spike_filtered(keys: Sequence[float], spike_m: float) -> int | None:
     median = sorted(range(n), key=keys.__getitem__)[n // 2]
     if spike_m <= 0.0:
         return newest if keys[newest] == keys[median] else median
+    if n >= 3:
+        # A steady change, faster than spike_m a reading (a sensor sweeping down a slope):
+        # the newest continues the two before it.
+        x, a, b = keys[newest], keys[newest - 1], keys[newest - 2]
+        if abs(x - (2.0 * a - b)) <= spike_m:  # (False where one is inf)
+            return newest
     need = max(1, (n - 1) // 2)
     for k in (newest, median):
         x = keys[k]
