@@ -65,9 +65,8 @@ FAULTS: dict[str, tuple[SensorFaultConfig, ...]] = {
 
 MEDIAN_SAMPLES = FailsafeConfig().range_median_samples
 SPIKE_M = FailsafeConfig().range_spike_m
-"""The service's spike filter in its default configuration (`spike_filtered`): a reading
-departing from the median of its sensor's last MEDIAN_SAMPLES by more than SPIKE_M metres
-is replaced by that median."""
+"""The service's spike filter in its default configuration (`spike_filtered` over each
+sensor's last MEDIAN_SAMPLES readings, agreement within SPIKE_M metres)."""
 
 GENTLE_REACH_H_D = 2.0
 """The height error on gentle relief counts the cycles whose surface within this many H_d
@@ -152,12 +151,11 @@ class _HeldFaults:
     spike still may, as in the simulator).
 
     Each delivered reading then passes the service's spike filter (`Telemetry._filtered`,
-    `spike_filtered`, the default configuration): a reading departing from the median of
-    its sensor's last readings ("nothing" counting as farthest) by more than SPIKE_M is
-    replaced by that median, which carries the attitude it was taken at, or by nothing new
-    where the readings disagree (the last one passed holds); the history restarts after a
-    gap of MEDIAN_GAP_S. A single spike never reaches the planner, as
-    through the service; a step arrives (n - 1) / 2 readings late, as it does there."""
+    `spike_filtered`, the default configuration): it passes as it is, or the median of its
+    sensor's last readings ("nothing" counting as farthest) with the attitude that one was
+    taken at, or nothing new (the last one passed holds); the history restarts after a gap
+    of MEDIAN_GAP_S. A single spike never reaches the planner, as through the service; a
+    step arrives (n - 1) / 2 readings late, as it does there."""
 
     def __init__(
         self,
