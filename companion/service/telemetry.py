@@ -788,15 +788,15 @@ def spike_filtered(keys: Sequence[float], spike_m: float) -> int | None:
     newest = n - 1
     if n == 1:
         return newest
-    median = sorted(range(n), key=keys.__getitem__)[n // 2]
-    if spike_m <= 0.0:
-        return newest if keys[newest] == keys[median] else median
-    if n >= 3:
+    if spike_m > 0.0 and n >= 3:
         # A steady change, faster than spike_m a reading (a sensor sweeping down a slope):
-        # the newest continues the two before it.
+        # the newest continues the two before it. (The usual reading: no sort needed.)
         x, a, b = keys[newest], keys[newest - 1], keys[newest - 2]
         if abs(x - (2.0 * a - b)) <= spike_m:  # (False where one is inf)
             return newest
+    median = sorted(range(n), key=keys.__getitem__)[n // 2]
+    if spike_m <= 0.0:
+        return newest if keys[newest] == keys[median] else median
     need = max(1, (n - 1) // 2)
     for k in (newest, median):
         x = keys[k]
