@@ -651,8 +651,8 @@ class Planner:
         self, x_z: tuple[float, float, float], state: VehicleState
     ) -> tuple[float, float, float]:
         """Eq. (3)'s aim point raised for the slope across the heading and for the lag over
-        curved relief (`ground.offsets_from_fit`), when the ground store fits a surface.
-        (x, y, z) world ENU, metres."""
+        curved relief (`ground.offsets_from_fit`), and its height carried over to X_d's
+        heading line, when the ground store fits a surface. (x, y, z) world ENU, metres."""
         zx, zy, zz = x_z
         xd, yd, _ = self._xd_prev_xyz
         # About the middle of the stretch eq. (4) steers over: X_d (k-1) to the aim.
@@ -665,7 +665,16 @@ class Planner:
         side, bend = offsets_from_fit(
             fit, zx, zy, state.yaw_rad, self._h_d, lead, reach_m=_GROUND_FIT_RADIUS_M
         )
-        lift = min(max(side + bend, -_GROUND_LIFT_MAX_M), _GROUND_LIFT_MAX_M)
+        # The aim lies on the body's heading, 3-4 m ahead on a descent: on a curved path
+        # that is off X_d's heading, and on a side slope the ground there is not the
+        # path's. Carried over to the heading line with the fitted slope, as
+        # `_surface_pitch` does for a stored point.
+        heading = self._path_heading()
+        c, s = math.cos(heading), math.sin(heading)
+        along = (zx - xd) * c + (zy - yd) * s
+        gx, gy = fit.gradient(zx, zy)
+        shift = gx * (xd + along * c - zx) + gy * (yd + along * s - zy)
+        lift = min(max(side + bend + shift, -_GROUND_LIFT_MAX_M), _GROUND_LIFT_MAX_M)
         return zx, zy, zz + lift
 
     def _surface_pitch(
@@ -685,11 +694,14 @@ class Planner:
           with the fit's slope. Eq. (4) steers at an aim about 2 H_d ahead: a
           first-order lag that cuts a mesa's rim or a crest on the way down and rounds a
           flank's foot.
-        - Else eq. (4) on the aim shaped by the fit (`_shaped_aim`), or, where the slope
-          fitted under X_d descends more steeply, H_d off that slope _SURFACE_AHEAD_M
-          ahead: a level body's forward sensor (a multicopter's) meets a descent nearly as
-          steep as its tilt only past the foot, and eq. (4) then steers along the chord
-          over the foot, up to 1 m above H_d (docs/paper.md).
+        - Else eq. (4) on the aim shaped by the fit (`_shaped_aim`); on a descent, H_d off
+          the slope fitted under X_d, _SURFACE_AHEAD_M ahead, instead, whether it descends
+          more steeply (a level body's forward sensor, a multicopter's, meets a descent
+          nearly as steep as its tilt only past the foot, and eq. (4) then steers along
+          the chord over the foot, up to 1 m above H_d: docs/paper.md) or less steeply
+          (over a crest on the way down the slope steepens, and the height H_d off it with
+          it, faster than eq. (4)'s lag towards an aim 3-4 m ahead follows: X_d went
+          0.14 m low), never climbing for it.
         Either is kept no lower than H_d from the points _SURFACE_AHEAD_M ahead."""
         xd, yd, zd = self._xd_prev_xyz
         heading = self._path_heading()
@@ -729,9 +741,11 @@ class Planner:
             if fit is not None and phi_d < 0.0:
                 gx, gy = fit.gradient(qx, qy)
                 target = fit.height(qx, qy) + self._h_d * math.sqrt(1.0 + gx * gx + gy * gy)
-                down = math.atan2(target - zd, _SURFACE_AHEAD_M)
-                if down < phi_d - _SLOPE_AHEAD_MARGIN_RAD:
-                    phi_d = max(down, -phi_max_rad)
+                along_fit = math.atan2(target - zd, _SURFACE_AHEAD_M)
+                if along_fit < phi_d - _SLOPE_AHEAD_MARGIN_RAD:
+                    phi_d = max(along_fit, -phi_max_rad)
+                elif along_fit > phi_d:
+                    phi_d = min(along_fit, 0.0)
         if floor_q > -math.inf:
             phi_d = max(phi_d, min(math.atan2(floor_q - zd, _SURFACE_AHEAD_M), phi_max_rad))
         return phi_d
