@@ -41,10 +41,11 @@ def test_inside_the_fan_by_the_tolerance_is_seen_free() -> None:
             at(0.0, 6.0),  # beyond it
             at(21.0, 3.0),  # within the tolerance of the fan's edge (0.25 m at 3 m: 4.8 deg)
             at(40.0, 3.0),  # outside the fan
-            at(0.0, 3.0, 2.4),  # above the fan's surface by more than the tolerance
+            at(0.0, 3.0, 3.0),  # 1 m above the fan's surface: a solid there rises through it
+            at(0.0, 3.0, 1.6),  # below the surface by more than the tolerance: may be lower
         ]
     )
-    assert fans.seen_free(pts).tolist() == [True, True, False, False, False, False, False]
+    assert fans.seen_free(pts).tolist() == [True, True, False, False, False, False, True, False]
 
 
 def test_a_pose_is_kept_once_moved_or_turned() -> None:
@@ -144,15 +145,28 @@ def test_wall_ends_need_the_evidence(monkeypatch: pytest.MonkeyPatch) -> None:
     assert not reached, events[-5:]
 
 
-def test_boxed_in_at_rest_the_vehicle_turns_to_read_across_the_arcs(
-    monkeypatch: pytest.MonkeyPatch,
-) -> None:
-    reached, events = fly_scenario("boxed-in-sectors")
-    assert reached
-    assert any(
-        e.startswith("boxed in by proximity sector arcs: turning 22 degrees") for e in events
-    )
-    monkeypatch.setattr(planner_mod, "_SCANS_PER_PLACE", 0)
-    reached, events = fly_scenario("boxed-in-sectors")
-    assert not reached, events[-5:]
-    assert not any(e.startswith("boxed in") for e in events)
+def test_boxed_in_at_rest_the_vehicle_turns_to_read_across_the_arcs() -> None:
+    """Every sector reads 3.5 m, at rest with no track behind (walled in, or arcs wider than
+    what is there): no correction and no retreat. The vehicle turns half a sector each way
+    and back, holding each heading, then a quarter, and then stays (two turns a place)."""
+    table = ring8()
+    route = Route(np.array([[0.0, 0.0], [60.0, 0.0]]), 0.0, 0.0)
+    planner = Planner(PlannerParams(), table, route, np.array([0.0, 0.0, 2.0]))
+    ranges = table.max_range_m.copy()
+    for i in table.surface_index.values():
+        ranges[i] = 2.0 / math.cos(math.pi / 4)
+    ranges[table.obstacle_index] = 3.5
+    yaw, yaws, events, moved = 0.0, [], [], 0.0
+    for _ in range(600):  # 30 s
+        result = planner.step(VehicleState(np.array([0.0, 0.0, 2.0]), 0.0, 0.0, yaw), ranges, 0.05)
+        events += [e for e in result.diagnostics.events if e.startswith("boxed in")]
+        yaw = result.setpoint.yaw_rad  # the vehicle turns as told
+        yaws.append(yaw)
+        moved = max(moved, float(np.linalg.norm(result.setpoint.position_enu[:2])))
+    assert events == [
+        "boxed in by proximity sector arcs: turning 22 degrees each way to narrow them",
+        "boxed in by proximity sector arcs: turning 11 degrees each way to narrow them",
+    ]
+    assert max(yaws) == pytest.approx(HALF) and min(yaws) == pytest.approx(-HALF)
+    assert yaws[-1] == pytest.approx(0.0)
+    assert moved < 0.5  # X_d stopped before D_min of the arcs, and stays

@@ -104,10 +104,12 @@ def test_a_wall_the_rays_end_on_is_kept() -> None:
 
 def test_a_sector_carves_across_its_width_only() -> None:
     """A 45-degree sector (boresight +x, level) that read 6 m: nothing is nearer anywhere
-    across it. Points inside its width nearer than 5.5 m go; those outside its width, beyond
-    its range, or 1 m above its plane stay."""
-    inside = [(4.0, 4.0 * math.tan(math.radians(20.0)), 2.0), (3.0, 0.0, 2.0)]
-    outside = [(4.0, 4.0 * math.tan(math.radians(30.0)), 2.0), (7.0, 0.0, 2.0), (2.0, 0.5, 3.0)]
+    across it. Points inside its width nearer than 5.5 m go, also one 1 m above its plane
+    (the planner keeps D_min from a point at every height, as from a solid rising from the
+    ground, and that solid would cross the sector's plane); those outside its width, beyond
+    its range, or 1 m below its plane (a solid lower than the sector) stay."""
+    inside = [(4.0, 4.0 * math.tan(math.radians(20.0)), 2.0), (3.0, 0.0, 2.0), (2.0, 0.5, 3.0)]
+    outside = [(4.0, 4.0 * math.tan(math.radians(30.0)), 2.0), (7.0, 0.0, 2.0), (2.5, -0.5, 1.0)]
     mem = memory_with(inside + outside)
     gone = mem.carve_sectors(
         np.array([0.0, 0.0, 2.0]),
@@ -117,7 +119,7 @@ def test_a_sector_carves_across_its_width_only() -> None:
         np.array([5.5]),
         0.25,
     )
-    assert gone == 2
+    assert gone == 3
     kept = {tuple(np.round(p, 3)) for p in mem.points_xy()}
     assert kept == {tuple(np.round(p[:2], 3)) for p in outside}
     # the same points, a beam along the boresight: only the one on it goes

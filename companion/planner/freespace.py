@@ -13,7 +13,10 @@ same evidence the other way round: a new fan drops remembered points it sees thr
 The test is the fan of `ObstacleMemory.carve_sectors` narrowed instead of widened by the
 tolerance: a point counts as seen free only when it is inside a fan by the tolerance
 across its width and along its reach, so a point near a fan's edge, where an object just
-outside the fan may be, is never left out.
+outside the fan may be, is never left out. Height: a point on or above a fan's surface (at
+most the tolerance below it) is tested, as the planner keeps D_min from a remembered point
+at every height, as from a solid standing on the ground, which would cross the fan; a point
+lower than that may be on a solid lower than the fan.
 
 World frame local ENU, metres and radians.
 """
@@ -118,8 +121,9 @@ class FreeFans:
         return True
 
     def seen_free(self, points_enu: FloatArray) -> BoolArray:
-        """Which points (k, 3) lie inside a kept fan, by the tolerance inside its surface,
-        its width and its free stretch: (k,) bool."""
+        """Which points (k, 3) lie inside a kept fan: on or above its surface (at most the
+        tolerance below), inside its width and its free stretch by the tolerance: (k,)
+        bool."""
         p = np.asarray(points_enu, dtype=np.float64).reshape(-1, 3)
         out = np.zeros(len(p), dtype=bool)
         rows = np.flatnonzero(self._used)
@@ -135,7 +139,7 @@ class FreeFans:
         inside = (
             (a * self._sin_half[rows] - np.abs(c) * self._cos_half[rows] >= tol)
             & (flat < self._reach[rows] - tol)
-            & (np.abs(rise - flat * self._slope[rows]) < tol)
+            & (rise - flat * self._slope[rows] > -tol)
         )
         out[:] = inside.any(axis=1)
         return out

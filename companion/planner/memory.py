@@ -288,9 +288,11 @@ class ObstacleMemory:
     ) -> int:
         """Free-space carving by sector readings: sector i (boresight boresights_enu[i], world
         ENU unit vector, spread +-half_width_rad[i] about up_enu, the body's up axis) saw
-        nothing nearer than free_m[i] anywhere across it. A point within tolerance_m of the
-        sector's fan surface, inside its width and nearer than free_m[i] (along the fan), is
-        dropped; support_m as in `carve`. Returns how many points were dropped."""
+        nothing nearer than free_m[i] anywhere across it. A point on or above the sector's
+        fan surface (at most tolerance_m below it: a point is an obstacle at every height,
+        and a solid standing on the ground that reaches above the fan crosses it), inside
+        its width and nearer than free_m[i] (along the fan), is dropped; support_m as in
+        `carve`. Returns how many points were dropped."""
         if not self._cells or len(free_m) == 0:
             return 0
         slots = self._cell_slots()
@@ -311,7 +313,7 @@ class ObstacleMemory:
         b_flat = b - b_rise[:, None] * up
         b_flat_len = np.maximum(np.sqrt((b_flat * b_flat).sum(axis=1)), 1e-9)
         # the fan surface: rise = flat_len * b_rise / b_flat_len; the bearing within it
-        off = np.abs(rise[:, None] - flat_len[:, None] * (b_rise / b_flat_len)[None, :])
+        above = rise[:, None] - flat_len[:, None] * (b_rise / b_flat_len)[None, :]
         cos_bearing = (flat @ b_flat.T) / np.maximum(flat_len[:, None] * b_flat_len[None, :], 1e-9)
         along = flat_len[:, None] / b_flat_len[None, :]
         widen = np.arcsin(np.minimum(tolerance_m / np.maximum(flat_len, 1e-9), 1.0))
@@ -319,7 +321,7 @@ class ObstacleMemory:
             np.minimum(np.asarray(half_width_rad)[None, :] + widen[:, None], np.pi)
         )
         free = np.asarray(free_m, dtype=np.float64).reshape(1, -1)
-        inside = within & (along < free) & (off < tolerance_m) & (flat_len[:, None] > 0.0)
+        inside = within & (along < free) & (above > -tolerance_m) & (flat_len[:, None] > 0.0)
         through = np.zeros(len(slots), dtype=bool)
         through[near] = inside.any(axis=1)
         return self._drop_through(slots, through, support_m)
