@@ -9,12 +9,12 @@ import pytest
 import companion.planner.planner as planner_mod
 from companion.harness import metrics as metrics_mod
 from companion.harness.closed_loop import run
-from companion.planner import Planner, PlannerParams, Route, VehicleState
+from companion.planner import VehicleState
 from companion.planner.freespace import FreeFans
 from companion.planner.memory import ObstacleMemory
 from companion.sim.scenario import load_scenario
 from companion.sim.world import World
-from tests.test_planner_sectors import ring8
+from tests.test_planner_sectors import planner_over_flat_ground, ring8
 
 UP = np.array([0.0, 0.0, 1.0])
 HALF = math.radians(22.5)
@@ -100,13 +100,9 @@ def test_a_reading_from_another_heading_trims_the_arc() -> None:
 
     def memory_bearings(use_evidence: bool) -> np.ndarray:
         table = ring8()
-        route = Route(np.array([[0.0, 0.0], [60.0, 0.0]]), 0.0, 0.0)
-        planner = Planner(PlannerParams(), table, route, np.array([0.0, 0.0, 2.0]))
+        planner, ground = planner_over_flat_ground(table)
         if not use_evidence:
             planner._free_fans = None
-        ground = table.max_range_m.copy()
-        for i in table.surface_index.values():
-            ground[i] = 2.0 / math.cos(math.pi / 4)
         first = ground.copy()
         first[table.index_of_id[7]] = 3.5  # sector 315 (front-left)
         planner.step(VehicleState(np.array([0.0, 0.0, 2.0]), 0.0, 0.0, 0.0), first, 0.05)
@@ -150,11 +146,7 @@ def test_boxed_in_at_rest_the_vehicle_turns_to_read_across_the_arcs() -> None:
     what is there): no correction and no retreat. The vehicle turns half a sector each way
     and back, holding each heading, then a quarter, and then stays (two turns a place)."""
     table = ring8()
-    route = Route(np.array([[0.0, 0.0], [60.0, 0.0]]), 0.0, 0.0)
-    planner = Planner(PlannerParams(), table, route, np.array([0.0, 0.0, 2.0]))
-    ranges = table.max_range_m.copy()
-    for i in table.surface_index.values():
-        ranges[i] = 2.0 / math.cos(math.pi / 4)
+    planner, ranges = planner_over_flat_ground(table)
     ranges[table.obstacle_index] = 3.5
     yaw, yaws, events, moved = 0.0, [], [], 0.0
     for _ in range(600):  # 30 s

@@ -184,3 +184,13 @@ def test_a_lone_spurious_surface_range_never_enters_the_ground_store() -> None:
     points, _ = planner._ground_store.near(0.0, 0.0, 100.0)
     assert len(points) > 10
     assert float(np.abs(points[:, 2]).max()) < 1e-6
+
+
+def test_carry_to_heading_measures_along_the_line_and_the_slope_across() -> None:
+    """A place 3 m along and 0.5 m left of an eastward line, on ground rising 0.2 northward:
+    3 m along it, and the line's ground lies 0.1 m lower."""
+    from companion.planner.ground import carry_to_heading
+
+    along, shift = carry_to_heading(0.0, 0.2, 13.0, 5.5, 10.0, 5.0, 0.0)
+    assert along == pytest.approx(3.0)
+    assert shift == pytest.approx(-0.1)

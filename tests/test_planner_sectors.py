@@ -22,6 +22,18 @@ def ring8():  # type: ignore[no-untyped-def]
     return sensor_table([SensorConfig.model_validate(s) for s in specs])
 
 
+def planner_over_flat_ground(table, route_end_x: float = 60.0):  # type: ignore[no-untyped-def]
+    """A planner with the sensor table at (0, 0, 2) heading east along a straight route, and
+    the ranges of flat ground 2 m below with nothing in the obstacle sensors' reach:
+    (planner, ranges)."""
+    route = Route(np.array([[0.0, 0.0], [route_end_x, 0.0]]), 0.0, 0.0)
+    planner = Planner(PlannerParams(), table, route, np.array([0.0, 0.0, 2.0]))
+    ranges = table.max_range_m.copy()
+    for i in table.surface_index.values():
+        ranges[i] = 2.0 / math.cos(math.pi / 4)
+    return planner, ranges
+
+
 def test_fan_spans_the_sector_about_the_up_axis() -> None:
     u = np.array([math.cos(0.3), math.sin(0.3), 0.0])
     fan = sector_fan_flu(u, math.radians(45.0), 9)
@@ -88,11 +100,7 @@ def test_a_sector_reading_enters_the_memory_as_an_arc() -> None:
     """A wall ahead read by the front sector only: the memory holds the arc across the
     sector at that range (the object may be anywhere on it), not one point ahead."""
     table = ring8()
-    route = Route(np.array([[0.0, 0.0], [60.0, 0.0]]), 0.0, 0.0)
-    planner = Planner(PlannerParams(), table, route, np.array([0.0, 0.0, 2.0]))
-    ranges = table.max_range_m.copy()
-    for i in table.surface_index.values():
-        ranges[i] = 2.0 / math.cos(math.pi / 4)
+    planner, ranges = planner_over_flat_ground(table)
     front = table.index_of_id[0]
     ranges[front] = 4.0
     state = VehicleState(np.array([0.0, 0.0, 2.0]), 0.0, 0.0, 0.0)
@@ -105,11 +113,7 @@ def test_a_sector_reading_enters_the_memory_as_an_arc() -> None:
 
 
 def _moving_planner(table, point_xyz: tuple[float, float, float]):  # type: ignore[no-untyped-def]
-    route = Route(np.array([[0.0, 0.0], [200.0, 0.0]]), 0.0, 0.0)
-    planner = Planner(PlannerParams(), table, route, np.array([0.0, 0.0, 2.0]))
-    ranges = table.max_range_m.copy()
-    for i in table.surface_index.values():
-        ranges[i] = 2.0 / math.cos(math.pi / 4)
+    planner, ranges = planner_over_flat_ground(table, 200.0)
     state = VehicleState(np.array([0.0, 0.0, 2.0]), 0.0, 0.0, 0.0)
     for _ in range(40):  # up to speed
         res = planner.step(state, ranges, 0.05)

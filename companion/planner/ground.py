@@ -194,6 +194,18 @@ def offsets_from_fit(
     return side, bend
 
 
+def carry_to_heading(
+    gx: float, gy: float, x: float, y: float, xd: float, yd: float, heading_rad: float
+) -> tuple[float, float]:
+    """A place (x, y) off the line from (xd, yd) along heading_rad (ENU, from +x), and the
+    ground's slope there (gx, gy, dz/dx and dz/dy): how far along the line the place lies
+    (metres) and the height the ground changes by from the place over to that point of the
+    line (metres, the slope times the offset). World ENU."""
+    c, s = math.cos(heading_rad), math.sin(heading_rad)
+    along = (x - xd) * c + (y - yd) * s
+    return along, gx * (xd + along * c - x) + gy * (yd + along * s - y)
+
+
 def floor_z(z: FloatArray, r2: FloatArray, h_d_m: float) -> float:
     """The lowest height at which a place is at least h_d_m from every point of heights z
     (k,) metres at squared horizontal distances r2 (k,) m^2 from it; -inf when none lies

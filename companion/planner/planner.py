@@ -48,7 +48,7 @@ from companion.planner.decision import chord_steepness_rows, decide_rows, steepn
 from companion.planner.frames import wrap_pi
 from companion.planner.freespace import FreeFans
 from companion.planner.gridpath import GridPlan, grid_search
-from companion.planner.ground import GroundPoints, floor_z, offsets_from_fit
+from companion.planner.ground import GroundPoints, carry_to_heading, floor_z, offsets_from_fit
 from companion.planner.memory import ObstacleMemory
 from companion.planner.params import ArcMethod, PlannerParams
 from companion.planner.path import Path
@@ -669,11 +669,7 @@ class Planner:
         # that is off X_d's heading, and on a side slope the ground there is not the
         # path's. Carried over to the heading line with the fitted slope, as
         # `_surface_pitch` does for a stored point.
-        heading = self._path_heading()
-        c, s = math.cos(heading), math.sin(heading)
-        along = (zx - xd) * c + (zy - yd) * s
-        gx, gy = fit.gradient(zx, zy)
-        shift = gx * (xd + along * c - zx) + gy * (yd + along * s - zy)
+        _, shift = carry_to_heading(*fit.gradient(zx, zy), zx, zy, xd, yd, self._path_heading())
         lift = min(max(side + bend + shift, -_GROUND_LIFT_MAX_M), _GROUND_LIFT_MAX_M)
         return zx, zy, zz + lift
 
@@ -727,9 +723,7 @@ class Planner:
                 # forward sensor's hits lie on the tangent, outside the path): carry the
                 # height over to the heading with the fitted slope, and steer over the run
                 # along it. On a side slope the height at the point is not the path's.
-                c, s = math.cos(heading), math.sin(heading)
-                along = (px - xd) * c + (py - yd) * s
-                shift = gx * (xd + along * c - px) + gy * (yd + along * s - py)
+                along, shift = carry_to_heading(gx, gy, px, py, xd, yd, heading)
                 target += min(max(shift, -_GROUND_LIFT_MAX_M), _GROUND_LIFT_MAX_M)
                 run = along
             phi_d = min(max(math.atan2(target - zd, run), -phi_max_rad), phi_max_rad)
