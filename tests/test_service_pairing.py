@@ -15,8 +15,10 @@ import pytest
 from companion.planner.frames import attitude_enu_to_ned
 from companion.service.pairing import (
     MAX_ATTITUDE_RATE_RADPS,
+    PAIR_TOLERANCE_M,
     PAIR_TOLERANCE_RAD,
     AttitudeHistory,
+    off_pose,
     pair_ranges,
 )
 from tests.test_service_cycle import GUIDED, PERIOD_S, rig
@@ -126,6 +128,24 @@ def test_pair_ranges_drops_readings_of_another_attitude_and_keeps_unmatched_ones
     p = pair_ranges(h, ranges, [0, 0, 0, 0], h.at(1100))
     assert p.attitude is None and p.unpaired == 0
     np.testing.assert_array_equal(p.ranges_m[:3], ranges[:3])
+
+
+def test_a_small_attitude_gap_drops_a_far_reading_and_keeps_a_near_one() -> None:
+    """0.03 rad is within PAIR_TOLERANCE_RAD, but at 6 m it moves the point 0.18 m, past
+    PAIR_TOLERANCE_M; at 2 m (0.06 m) the reading is used, and "nothing" (0) is judged
+    by the angle alone."""
+    gap = 0.03
+    assert gap < PAIR_TOLERANCE_RAD and 2.0 * gap < PAIR_TOLERANCE_M < 6.0 * gap
+    h = _history((1000, 0.0), (1050, gap))
+    ranges = np.array([6.0, 2.0, 0.0, 6.0])
+    p = pair_ranges(h, ranges, [1000, 1000, 1000, 1050], h.at(1050))
+    assert math.isnan(p.ranges_m[0]) and p.unpaired == 1
+    np.testing.assert_array_equal(p.ranges_m[1:], ranges[1:])
+    gaps = np.array([0.0, gap, gap, gap, 0.06, math.nan])
+    np.testing.assert_array_equal(
+        off_pose(gaps, np.array([6.0, 6.0, 2.0, math.inf, 1.0, 6.0])),
+        [False, True, False, False, True, False],
+    )
 
 
 def test_an_untrusted_cycle_attitude_uses_no_range() -> None:

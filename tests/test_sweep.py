@@ -372,6 +372,22 @@ def test_a_held_reading_taken_at_another_attitude_is_not_used() -> None:
     assert seen["held"] > 0 and seen["not used"] > 0
 
 
+def test_a_median_taken_slightly_off_pose_is_not_used_far_away() -> None:
+    """The spike filter's median keeps the attitude it was taken at. 0.03 rad from this
+    cycle's is within PAIR_TOLERANCE_RAD, but at 6 m it would move the point 0.18 m
+    (past PAIR_TOLERANCE_M): not used; at 2 m it is."""
+    table = scenario(0, load_scenario_sensors()).sensor_table()
+    n = len(table)
+    tilted = VehicleState(np.zeros(3), 0.0, 0.03, 0.0)
+    for steady, jump, expect_nan in ((6.0, 7.0, True), (2.0, 2.6, False)):
+        f = _HeldFaults((), table, seed=0)
+        for k in range(3):
+            out = f(0.05 * k, np.full(n, steady), LEVEL)
+        # a jump while tilted: the filter passes the median (steady, taken level)
+        out = f(0.15, np.full(n, jump), tilted)
+        assert np.all(np.isnan(out)) if expect_nan else np.all(out == steady)
+
+
 @pytest.mark.slow
 @pytest.mark.timeout(600)
 def test_faulty_run_is_deterministic() -> None:

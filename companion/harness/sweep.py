@@ -44,7 +44,7 @@ import yaml
 from companion.config import FailsafeConfig
 from companion.harness.closed_loop import STALL_BOX_M
 from companion.planner.types import VehicleState
-from companion.service.pairing import PAIR_TOLERANCE_RAD
+from companion.service.pairing import off_pose
 from companion.service.telemetry import MEDIAN_GAP_S, spike_filtered
 from companion.sim.mavlink.config import SensorFaultConfig
 from companion.sim.mavlink.faults import SensorFaults
@@ -139,11 +139,14 @@ class _HeldFaults:
     """Sensor faults in process, reaching the planner as they would through the service: a
     reading not delivered leaves the last one in place (what the service's reading store
     holds; before any, the sensor's max range), and a held reading whose attitude (roll,
-    pitch or yaw) differs from this cycle's by more than PAIR_TOLERANCE_RAD is not used this
-    cycle (NaN), as the service pairs each reading with the attitude of its own time and
-    drops it then (`companion.service.pairing`). Without that, a reading taken at another
-    pitch became a point in the wrong place as if measured now (0.82 m of height error at a
-    crease with 10 % dropout, 0.11 m through the service).
+    pitch or yaw) differs from this cycle's by more than PAIR_TOLERANCE_RAD, or by enough
+    to move its point more than PAIR_TOLERANCE_M, is not used this cycle (NaN), as the
+    service pairs each reading with the attitude of its own time and drops it then
+    (`companion.service.pairing.off_pose`). Without that, a reading taken at another pitch
+    became a point in the wrong place as if measured now (0.82 m of height error at a
+    crease with 10 % dropout, 0.11 m through the service; with noise alone, a median 2.7
+    degrees off at 5.8 m put a ground point 0.31 m high, and X_d 0.29 m above H_d on the
+    descent past it).
 
     A ray that hit nothing (the closed loop reads the max range there) reaches the fault
     model as the MAVLink simulator's rangefinders give it, inf: noise moves only what was
@@ -192,7 +195,7 @@ class _HeldFaults:
                 self.held[i], self.held_rpy[i] = passed
         turned = np.abs(np.angle(np.exp(1j * (self.held_rpy - rpy)))).max(axis=1)
         # A held reading, or a median taken at another attitude (NaN attitude: never sent).
-        stale_pose = turned > PAIR_TOLERANCE_RAD
+        stale_pose = off_pose(turned, np.where(self.held >= self.max_m, 0.0, self.held))
         return np.where(stale_pose, np.nan, self.held)
 
     def _filtered(

@@ -35,6 +35,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
+import numpy.typing as npt
 
 from companion.planner.frames import wrap_pi
 from companion.planner.types import FloatArray
@@ -52,6 +53,11 @@ MAX_ATTITUDE_RATE_RADPS = 10.0
 PAIR_TOLERANCE_RAD = 0.05
 """A reading whose own attitude differs more than this (any angle) from the cycle's is not
 used in that cycle: its point would be off by about range * this."""
+PAIR_TOLERANCE_M = 0.1
+"""... nor one whose point that difference would move more than this, metres (range * angle
+gap): at 6 m, 0.05 rad is 0.3 m, six times the noise of a good rangefinder, and a ground
+point that high lifts the floor X_d keeps over it (`ground.floor_z`, the highest of the
+points' needs) by as much."""
 
 
 @dataclass(frozen=True, slots=True)
@@ -64,6 +70,20 @@ class AttitudeSample:
     pitch_rad: float
     yaw_rad: float
     trusted: bool = True
+
+
+def off_pose(
+    gap_rad: FloatArray | float, range_m: FloatArray | float
+) -> npt.NDArray[np.bool_] | bool:
+    """Whether a reading of range_m (metres; 0, inf or NaN: "nothing", judged by the angle
+    alone) taken gap_rad (`angle_gap_rad`) from the cycle's attitude is not to be used with
+    it: past PAIR_TOLERANCE_RAD, or moving its point past PAIR_TOLERANCE_M."""
+    gap = np.asarray(gap_rad, dtype=np.float64)
+    r = np.asarray(range_m, dtype=np.float64)
+    measured = np.isfinite(r) & (r > 0.0)
+    moved = gap * np.where(measured, r, 0.0)
+    out = (gap > PAIR_TOLERANCE_RAD) | (measured & (moved > PAIR_TOLERANCE_M))
+    return bool(out) if out.ndim == 0 else out
 
 
 def angle_gap_rad(a: AttitudeSample, b: AttitudeSample) -> float:
@@ -172,7 +192,8 @@ def pair_ranges(
     - the cycle's attitude is untrusted: no range is used this cycle (all NaN); the planner
       steps on what it remembers, and the next cycle pairs afresh;
     - a reading whose own time has an untrusted attitude, or one more than
-      PAIR_TOLERANCE_RAD from the cycle's, is not used this cycle (NaN); a reading whose own
+      PAIR_TOLERANCE_RAD from the cycle's or whose point that moves more than
+      PAIR_TOLERANCE_M (`off_pose`), is not used this cycle (NaN); a reading whose own
       time matches no attitude is used (nothing says its attitude differs).
     """
     r = np.array(ranges_m, dtype=np.float64)
@@ -196,7 +217,7 @@ def pair_ranges(
         if stamp not in cache:
             cache[stamp] = history.at(stamp)
         own = cache[stamp]
-        if own is not None and (not own.trusted or angle_gap_rad(own, att) > PAIR_TOLERANCE_RAD):
+        if own is not None and (not own.trusted or off_pose(angle_gap_rad(own, att), r[i])):
             r[i] = math.nan
             unpaired += 1
     return Pairing(r, att, unpaired, False)
@@ -204,10 +225,12 @@ def pair_ranges(
 
 __all__ = [
     "MAX_ATTITUDE_RATE_RADPS",
+    "PAIR_TOLERANCE_M",
     "PAIR_TOLERANCE_RAD",
     "AttitudeHistory",
     "AttitudeSample",
     "Pairing",
     "angle_gap_rad",
+    "off_pose",
     "pair_ranges",
 ]
