@@ -9,7 +9,13 @@ import pytest
 
 from companion.harness import metrics as metrics_mod
 from companion.harness.closed_loop import run
-from companion.planner.ground import GroundFit, GroundPoints, floor_z, offsets_from_fit
+from companion.planner.ground import (
+    GroundFit,
+    GroundPoints,
+    fit_floor_z,
+    floor_z,
+    offsets_from_fit,
+)
 from companion.sim.scenario import load_scenario
 from companion.sim.world import World
 
@@ -106,6 +112,27 @@ def test_floor_keeps_h_d_from_every_point_and_is_exact_at_a_points_place() -> No
     assert mid == pytest.approx(1.0 + math.sqrt(h_d**2 - 0.125**2))
 
 
+def test_the_fits_floor_keeps_h_d_from_the_fitted_surface_in_every_direction() -> None:
+    """Level ground: H_d above it. A plane rising at 0.5 towards +x, +y or any heading:
+    about H_d sqrt(1 + 0.25) above the plane at that place (the sphere touches the slope
+    uphill), never more (the samples lie on the surface), within the rings' spacing."""
+    h_d = 2.0
+    level = GroundFit(3.0, 4.0, (1.5, 0.0, 0.0, 0.0, 0.0, 0.0), 9)
+    assert fit_floor_z(level, 3.0, 4.0, h_d) == pytest.approx(1.5 + h_d)
+    exact = h_d * math.sqrt(1.0 + 0.25)
+    for bearing in (0.0, 0.4, 1.0, 2.5, -2.0):
+        g = (0.5 * math.cos(bearing), 0.5 * math.sin(bearing))
+        plane = GroundFit(0.0, 0.0, (1.0, g[0], g[1], 0.0, 0.0, 0.0), 9)
+        floor = fit_floor_z(plane, 2.0, -1.0, h_d) - plane.height(2.0, -1.0)
+        assert exact - 0.03 <= floor <= exact + 1e-12
+    # the points' own floor along one line misses a rise beside it; the fit's does not
+    side = GroundFit(0.0, 0.0, (0.0, 0.0, 0.6, 0.0, 0.0, 0.0), 9)  # rising to the left
+    line = np.linspace(-2.0, 2.0, 21)
+    on_line = floor_z(side.heights(line, np.zeros(21)), line * line, h_d)
+    assert on_line == pytest.approx(h_d)
+    assert fit_floor_z(side, 0.0, 0.0, h_d) > h_d + 0.25
+
+
 def test_near_gives_the_points_within_a_radius_and_their_distances() -> None:
     store = GroundPoints(capacity=8, spacing_m=0.01)
     points, r2 = store.near(1.0, 2.0, 5.0)
@@ -161,6 +188,21 @@ def test_a_curving_path_over_a_side_slope_keeps_h_d_on_gentle_relief(
     record = run_task(task)
     assert record["reached_goal"]
     assert 0.0 < record["height_err_gentle_max_m"] <= 0.07
+
+
+@pytest.mark.slow
+def test_ground_between_the_surface_sensors_lines_keeps_its_distance() -> None:
+    """Random world 301 (ring-8, multicopter): in a trench at a climbable mesa's corner the
+    nearest ground lay 1 m ahead and to the right, between the forward and the right
+    surface sensors' lines; the stored points said the height was enough and H fell to
+    1.79 m (0.207 m short). The fitted surface's floor (`fit_floor_z`) keeps the run's worst
+    |H - H_d| away from solids within the issue's 0.15 m."""
+    from companion.harness.sweep import load_layout, run_task, tasks_for
+
+    (task,) = tasks_for([301], [load_layout("ring-8")], ["multicopter"], ["none"])
+    record = run_task(task)
+    assert record["reached_goal"]
+    assert 0.0 < record["height_err_max_m"] <= 0.15
 
 
 def test_a_lone_spurious_surface_range_never_enters_the_ground_store() -> None:

@@ -56,6 +56,13 @@ class GroundFit:
         dx, dy = x - self.origin_x, y - self.origin_y
         return c0 + c1 * dx + c2 * dy + c3 * dx * dx + c4 * dx * dy + c5 * dy * dy
 
+    def heights(self, x: FloatArray, y: FloatArray) -> FloatArray:
+        """z at world (x, y) arrays, metres."""
+        c0, c1, c2, c3, c4, c5 = self.coef
+        dx, dy = x - self.origin_x, y - self.origin_y
+        out: FloatArray = c0 + c1 * dx + c2 * dy + c3 * dx * dx + c4 * dx * dy + c5 * dy * dy
+        return out
+
     def gradient(self, x: float, y: float) -> tuple[float, float]:
         """dz/dx, dz/dy at world (x, y) (dimensionless)."""
         _, c1, c2, c3, c4, c5 = self.coef
@@ -204,6 +211,25 @@ def carry_to_heading(
     c, s = math.cos(heading_rad), math.sin(heading_rad)
     along = (x - xd) * c + (y - yd) * s
     return along, gx * (xd + along * c - x) + gy * (yd + along * s - y)
+
+
+_RING_FRACTIONS = np.repeat(np.array([0.0, 0.25, 0.5, 0.75, 0.95]), 16)
+_RING_ANGLES = np.tile(np.linspace(0.0, 2.0 * math.pi, 16, endpoint=False), 5)
+_RING_COS = np.cos(_RING_ANGLES)
+_RING_SIN = np.sin(_RING_ANGLES)
+
+
+def fit_floor_z(fit: GroundFit, x: float, y: float, h_d_m: float) -> float:
+    """`floor_z` of the fitted surface about world (x, y): the lowest height there at least
+    h_d_m from the fit sampled on 5 rings of 16 points out to 0.95 h_d_m, metres.
+
+    The surface sensors sample the ground along four lines; the nearest ground may lie
+    between them (a mesa's corner between the forward and the side line, 1 m away, with
+    H 0.2 m short of H_d while every stored point said the height was enough). The fit
+    spans the lines; it rounds a crease, so the points' own floor still holds at one."""
+    r = h_d_m * _RING_FRACTIONS
+    z = fit.heights(x + r * _RING_COS, y + r * _RING_SIN)
+    return floor_z(z, r * r, h_d_m)
 
 
 def floor_z(z: FloatArray, r2: FloatArray, h_d_m: float) -> float:

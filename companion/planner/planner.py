@@ -48,7 +48,13 @@ from companion.planner.decision import chord_steepness_rows, decide_rows, steepn
 from companion.planner.frames import wrap_pi
 from companion.planner.freespace import FreeFans
 from companion.planner.gridpath import GridPlan, grid_search
-from companion.planner.ground import GroundPoints, carry_to_heading, floor_z, offsets_from_fit
+from companion.planner.ground import (
+    GroundPoints,
+    carry_to_heading,
+    fit_floor_z,
+    floor_z,
+    offsets_from_fit,
+)
 from companion.planner.memory import ObstacleMemory
 from companion.planner.params import ArcMethod, PlannerParams
 from companion.planner.path import Path
@@ -698,7 +704,9 @@ class Planner:
           (over a crest on the way down the slope steepens, and the height H_d off it with
           it, faster than eq. (4)'s lag towards an aim 3-4 m ahead follows: X_d went
           0.14 m low), never climbing for it.
-        Either is kept no lower than H_d from the points _SURFACE_AHEAD_M ahead."""
+        Either is kept no lower than H_d from the points _SURFACE_AHEAD_M ahead, and from
+        the surface fitted under X_d about there (`ground.fit_floor_z`: the ground between
+        the sensors' lines)."""
         xd, yd, zd = self._xd_prev_xyz
         heading = self._path_heading()
         qx = xd + _SURFACE_AHEAD_M * math.cos(heading)
@@ -740,6 +748,11 @@ class Planner:
                     phi_d = max(along_fit, -phi_max_rad)
                 elif along_fit > phi_d:
                     phi_d = min(along_fit, 0.0)
+        # ... and H_d from the fitted surface about there: the ground between the sensors'
+        # lines (`ground.fit_floor_z`).
+        fit_q = store.fit(xd, yd, _GROUND_FIT_RADIUS_M)
+        if fit_q is not None:
+            floor_q = max(floor_q, fit_floor_z(fit_q, qx, qy, self._h_d))
         if floor_q > -math.inf:
             phi_d = max(phi_d, min(math.atan2(floor_q - zd, _SURFACE_AHEAD_M), phi_max_rad))
         return phi_d
