@@ -351,6 +351,7 @@ class Planner:
         # Obstacle sensors that read a sector (`SensorSpec.fov_rad`), and the rows of this
         # cycle's steep points (`_steep_points`), for `_sector_arcs`.
         self._sector_rows = np.flatnonzero(sensors.fov_rad > 0.0)
+        self._arc_fans: dict[tuple[int, int], FloatArray] = {}  # (row, n): body FLU fan
         self._scan: list[float] = []  # yaw offsets still to turn to at rest, radians
         self._scan_held_s = 0.0
         self._scan_place: tuple[int, int] | None = None
@@ -896,7 +897,10 @@ class Planner:
             i = int(rows[k])
             r = float(ranges[i])
             n = max(2, math.ceil(float(fov[k]) * r / _SECTOR_ARC_SPACING_M) + 1)
-            fan = sector_fan_flu(self.sensors.boresights_flu[i], float(fov[k]), n)
+            fan = self._arc_fans.get((i, n))
+            if fan is None:  # (at most a few dozen per sector: n grows with the range)
+                fan = sector_fan_flu(self.sensors.boresights_flu[i], float(fov[k]), n)
+                self._arc_fans[(i, n)] = fan
             arcs.append(position_enu + r * (fan @ rot.T))
         if self._free_fans is not None:
             # Where a fan from another pose saw part of an arc free, the object is on the
