@@ -52,16 +52,13 @@ class GroundFit:
 
     def height(self, x: float, y: float) -> float:
         """z at world (x, y), metres."""
+        return float(self.heights(x, y))
+
+    def heights(self, x: FloatArray | float, y: FloatArray | float) -> FloatArray | float:
+        """z at world (x, y) (arrays or numbers), metres."""
         c0, c1, c2, c3, c4, c5 = self.coef
         dx, dy = x - self.origin_x, y - self.origin_y
         return c0 + c1 * dx + c2 * dy + c3 * dx * dx + c4 * dx * dy + c5 * dy * dy
-
-    def heights(self, x: FloatArray, y: FloatArray) -> FloatArray:
-        """z at world (x, y) arrays, metres."""
-        c0, c1, c2, c3, c4, c5 = self.coef
-        dx, dy = x - self.origin_x, y - self.origin_y
-        out: FloatArray = c0 + c1 * dx + c2 * dy + c3 * dx * dx + c4 * dx * dy + c5 * dy * dy
-        return out
 
     def gradient(self, x: float, y: float) -> tuple[float, float]:
         """dz/dx, dz/dy at world (x, y) (dimensionless)."""
@@ -228,7 +225,7 @@ def fit_floor_z(fit: GroundFit, x: float, y: float, h_d_m: float) -> float:
     H 0.2 m short of H_d while every stored point said the height was enough). The fit
     spans the lines; it rounds a crease, so the points' own floor still holds at one."""
     r = h_d_m * _RING_FRACTIONS
-    z = fit.heights(x + r * _RING_COS, y + r * _RING_SIN)
+    z = np.asarray(fit.heights(x + r * _RING_COS, y + r * _RING_SIN))
     return floor_z(z, r * r, h_d_m)
 
 

@@ -736,24 +736,24 @@ class Planner:
                 target += min(max(shift, -_GROUND_LIFT_MAX_M), _GROUND_LIFT_MAX_M)
                 run = along
             phi_d = min(max(math.atan2(target - zd, run), -phi_max_rad), phi_max_rad)
+            under = store.fit(xd, yd, _GROUND_FIT_RADIUS_M)
         else:
             phi_d = desired_pitch_xyz(
                 *self._shaped_aim(x_z, state), *self._xd_prev_xyz, phi_max_rad
             )
-            fit = store.fit(xd, yd, _GROUND_FIT_RADIUS_M)
-            if fit is not None and phi_d < 0.0:
-                gx, gy = fit.gradient(qx, qy)
-                target = fit.height(qx, qy) + self._h_d * math.sqrt(1.0 + gx * gx + gy * gy)
+            under = store.fit(xd, yd, _GROUND_FIT_RADIUS_M)
+            if under is not None and phi_d < 0.0:
+                gx, gy = under.gradient(qx, qy)
+                target = under.height(qx, qy) + self._h_d * math.sqrt(1.0 + gx * gx + gy * gy)
                 along_fit = math.atan2(target - zd, _SURFACE_AHEAD_M)
                 if along_fit < phi_d - _SLOPE_AHEAD_MARGIN_RAD:
                     phi_d = max(along_fit, -phi_max_rad)
                 elif along_fit > phi_d:
                     phi_d = min(along_fit, 0.0)
-        # ... and H_d from the fitted surface about there: the ground between the sensors'
-        # lines (`ground.fit_floor_z`).
-        fit_q = store.fit(xd, yd, _GROUND_FIT_RADIUS_M)
-        if fit_q is not None:
-            floor_q = max(floor_q, fit_floor_z(fit_q, qx, qy, self._h_d))
+        # ... and H_d from the surface fitted under X_d about there: the ground between
+        # the sensors' lines (`ground.fit_floor_z`).
+        if under is not None:
+            floor_q = max(floor_q, fit_floor_z(under, qx, qy, self._h_d))
         if floor_q > -math.inf:
             phi_d = max(phi_d, min(math.atan2(floor_q - zd, _SURFACE_AHEAD_M), phi_max_rad))
         return phi_d
