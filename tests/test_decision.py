@@ -85,9 +85,21 @@ def test_chord_steepness_never_exceeds_the_steepest_slope() -> None:
 
 
 def test_chord_steepness_ignores_short_chords() -> None:
-    pts = np.array([[0.0, 0.0, 0.0], [0.2, 0.0, 1.0]])
+    pts = np.array([[0.0, 0.0, 0.0], [0.2, 0.0, 0.3]])
     phi, partner = chord_steepness(pts, min_separation_m=0.5)
     assert phi.tolist() == [0.0, 0.0] and partner.tolist() == [-1, -1]
+
+
+def test_chord_steepness_counts_a_short_run_under_a_tall_rise() -> None:
+    """A level beam and a beam tilted up meet a vertical wall one above the other: the
+    chord between them is the wall's slope (pi/2 straight above), though its horizontal
+    run is far below the separation."""
+    pts = np.array([[10.0, 0.0, 2.0], [10.02, 0.0, 4.7], [10.0, 0.0, 7.0]])
+    for form in (pts, np.tile(pts, (4, 1)) + np.repeat(np.arange(4.0), 3)[:, None] * 100.0):
+        phi, partner = chord_steepness(form, min_separation_m=0.5)
+        assert phi[0] == 0.0 and partner[0] == -1
+        assert math.degrees(phi[1]) > 89.0 and partner[1] == 0
+        assert phi[2] == math.pi / 2 and partner[2] == 0  # the first of the vertical chords
 
 
 def test_chord_steepness_on_float_rows_equals_the_array_form() -> None:

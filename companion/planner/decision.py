@@ -58,8 +58,9 @@ def chord_steepness(points: FloatArray, min_separation_m: float) -> tuple[FloatA
 
     points: (n, 3) world ENU, every surface point measured this cycle (obstacle and surface
     sensors, the held ground points). For each point i: max over the points k lower than i
-    and at least min_separation_m away horizontally of arctan((z_i - z_k) / |xy_i - xy_k|),
-    radians, and that k; 0 and -1 where there is none.
+    and at least min_separation_m away from it horizontally or vertically (below it) of
+    arctan((z_i - z_k) / |xy_i - xy_k|), radians (pi/2 straight above), and that k; 0 and
+    -1 where there is none.
 
     Why: on a height field the slope of a chord between two surface points is the slope of
     the surface at some point between them (mean value theorem), so the steepest chord is a
@@ -67,6 +68,12 @@ def chord_steepness(points: FloatArray, min_separation_m: float) -> tuple[FloatA
     from the obstacle point to its group's ground point; seen from afar at a slant, that
     chord is far shallower than the flank it ends on (a 50 degree mesa read as climbable).
     Two rays that hit the same flank measure the flank itself.
+
+    Separation: over a short chord a few centimetres of range noise would tilt the slope a
+    lot, so both ends must lie min_separation_m apart. Horizontally or vertically: two rays
+    that meet a vertical wall (a level beam and one tilted up above it) hit it at nearly
+    the same horizontal place, one above the other, and that chord, the plainest evidence
+    of a wall, is steeper than 45 degrees whatever the noise.
     """
     n = len(points)
     if n < 2:
@@ -79,10 +86,11 @@ def chord_steepness(points: FloatArray, min_separation_m: float) -> tuple[FloatA
     dx = np.subtract.outer(x, x)
     dy = np.subtract.outer(y, y)
     h = np.sqrt(dx * dx + dy * dy)
-    usable = (dz > 0.0) & (h >= min_separation_m)
-    # arctan is increasing, so the steepest chord is the one of largest dz / h (h > 0 where
-    # usable, -1 elsewhere); the angle is taken of that chord only.
-    ratio = np.divide(dz, h, out=np.full((n, n), -1.0), where=usable)
+    usable = (dz > 0.0) & ((h >= min_separation_m) | (dz >= min_separation_m))
+    # arctan is increasing, so the steepest chord is the one of largest dz / h (inf where
+    # h = 0, -1 where not usable); the angle is taken of that chord only.
+    ratio = np.divide(dz, h, out=np.full((n, n), -1.0), where=usable & (h > 0.0))
+    ratio[usable & (h == 0.0)] = np.inf
     partner = ratio.argmax(axis=1)
     flat = partner + n * (_ROWS[:n] if n <= len(_ROWS) else np.arange(n))  # (i, partner i)
     found = ratio.ravel()[flat] >= 0.0
@@ -135,8 +143,8 @@ def _chords_small(
             if dz > 0.0:
                 dx, dy = xi - xk, yi - yk
                 h = sqrt(dx * dx + dy * dy)
-                if h >= min_separation_m:
-                    q = dz / h
+                if h >= min_separation_m or dz >= min_separation_m:
+                    q = dz / h if h > 0.0 else math.inf
                     if q > best:
                         best, k_best, rise, run = q, k, dz, h
         rises.append(rise)

@@ -148,8 +148,8 @@ _YAW_ALIGNED_RAD = 0.1
 _GROUND_HOLD_RANGE = 4.0
 _RETRY_BLOCKED_CYCLES = 20
 _MIN_CHORD_M = 0.5
-"""Shortest horizontal chord whose slope counts (`chord_steepness`): over shorter ones a
-few centimetres of range noise would read as a steep slope."""
+"""Shortest chord, horizontally or vertically, whose slope counts (`chord_steepness`): over
+shorter ones a few centimetres of range noise would read as a steep slope."""
 _LOCAL_CHORD_M = 2.5
 """Longest horizontal chord whose slope is taken as the slope at its upper end."""
 _GROUND_FIT_RADIUS_M = 3.0
