@@ -54,7 +54,8 @@ def test_kept_clearances_are_those_measured_afresh(
 def chord_steepness_reference(
     points: np.ndarray, min_separation_m: float
 ) -> tuple[np.ndarray, np.ndarray]:
-    """The array form `chord_steepness` had before it indexed the chords flat."""
+    """The array form `chord_steepness` had before it indexed the chords flat (with its
+    separation horizontal or vertical)."""
     n = len(points)
     if n < 2:
         return np.zeros(n), np.full(n, -1, dtype=np.intp)
@@ -63,8 +64,9 @@ def chord_steepness_reference(
     dx = np.subtract.outer(x, x)
     dy = np.subtract.outer(y, y)
     h = np.sqrt(dx * dx + dy * dy)
-    usable = (dz > 0.0) & (h >= min_separation_m)
-    ratio = np.divide(dz, h, out=np.full((n, n), -1.0), where=usable)
+    usable = (dz > 0.0) & ((h >= min_separation_m) | (dz >= min_separation_m))
+    ratio = np.divide(dz, h, out=np.full((n, n), -1.0), where=usable & (h > 0.0))
+    ratio[usable & (h == 0.0)] = np.inf  # straight above
     partner = ratio.argmax(axis=1)
     rows = np.arange(n)
     found = ratio[rows, partner] >= 0.0

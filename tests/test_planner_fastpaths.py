@@ -43,12 +43,14 @@ def test_small_cloud_chords_equal_the_array_form(seed: int) -> None:
 
 
 def test_small_cloud_path_is_taken_and_finds_the_steep_chord() -> None:
-    points = np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 1.0], [0.2, 0.0, 5.0]])
+    points = np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 1.0], [0.2, 0.0, 5.0], [0.3, 0.0, 0.3]])
     angles, partners = decision._chord_steepness_small(points, 0.5)
-    # Point 2 is 0.2 m from point 0 (too short a chord): its partner is point 1.
-    assert partners.tolist() == [-1, 0, 1]
+    # Point 3 is 0.3 m from point 0 both ways (too short a chord): no partner. Point 2 lies
+    # 0.1 m beside point 3 and 4.7 m above it: a chord tall enough, the steepest. Point 1's
+    # chords to points 0 and 3 are equally steep: the first.
+    assert partners.tolist() == [-1, 0, 3, -1]
     assert angles[1] == pytest.approx(np.pi / 4)
-    assert angles[2] == pytest.approx(np.arctan2(4.0, 0.8))
+    assert angles[2] == pytest.approx(np.arctan2(4.7, 0.1))
 
 
 def _brute_far(points_xy: np.ndarray, position_xy: np.ndarray, radius_m: float) -> int:

@@ -343,7 +343,7 @@ def test_chord_steepness_is_the_steepest_chord() -> None:
             best, arg = -1.0, -1
             for k, q in enumerate(pts):
                 h = math.hypot(p[0] - q[0], p[1] - q[1])
-                if p[2] - q[2] > 0.0 and h >= 0.5:
+                if p[2] - q[2] > 0.0 and (h >= 0.5 or p[2] - q[2] >= 0.5):
                     a = math.atan2(p[2] - q[2], h)
                     if a > best:
                         best, arg = a, k
