@@ -43,6 +43,20 @@ def test_ideal_tracker_reproduces_setpoint() -> None:
         v.step(s, -0.1)
 
 
+def test_ideal_tracker_pitch_does_not_jump_as_motion_starts() -> None:
+    """A MAVLink target carries no pitch (0) and a shaped velocity starting at a slant has a
+    steep tangent: the pitch grows with the speed instead of jumping to it."""
+    v = IdealTracker(START)
+    pitches = []
+    for k in range(1, 21):
+        h = 0.025 * k  # horizontal speed ramp, m/s; descending at tan 0.6
+        s = Setpoint(np.zeros(3), np.array([-h, 0.0, -0.6 * h]), 0.0, 0.0)
+        pitches.append(v.step(s, 0.05).pitch_rad)
+    steps = np.abs(np.diff([0.0, *pitches]))
+    assert steps.max() < 0.11  # rad per 0.05 s tick: about 2 rad/s
+    assert pitches[0] == 0.0 and pitches[-1] == pytest.approx(math.atan(-0.6))
+
+
 def test_multicopter_converges_to_fixed_setpoint() -> None:
     m = Multicopter(START)
     target = sp(4.0, -3.0, 2.0, yaw=1.0)

@@ -86,13 +86,18 @@ class VehicleModelConfig(BaseModel):
 
 
 _ALONG_MPS = 0.05
+"""Below this horizontal speed (m/s) the ideal tracker's pitch is the setpoint's."""
+_TANGENT_MPS = 0.25
+"""From this horizontal speed (m/s) up, its pitch is the tangent's; between the two, a blend,
+so the pitch never jumps when motion starts (a MAVLink target carries no pitch, so the
+setpoint's is 0, and a shaped velocity's tangent at 0.06 m/s can be 0.5 rad)."""
 
 
 class IdealTracker:
     """Perfect tracking, the paper's assumption: position = setpoint.position_enu, yaw the
     setpoint's, roll 0, and pitch along the trajectory's tangent: from the velocity
     feed-forward when there is one (a MAVLink position target carries no pitch), else the
-    setpoint's pitch."""
+    setpoint's pitch, blended into the tangent's as motion starts (_TANGENT_MPS)."""
 
     def __init__(self, initial: VehicleState) -> None:
         self._state = initial
@@ -107,8 +112,11 @@ class IdealTracker:
         v = np.asarray(setpoint.velocity_enu, dtype=np.float64)
         horizontal = math.hypot(float(v[0]), float(v[1]))
         # Only while moving along: a vertical climb (take-off) is not a 90-degree pitch.
-        moving = horizontal > _ALONG_MPS and bool(np.isfinite(v).all())
-        pitch = math.atan2(float(v[2]), horizontal) if moving else float(setpoint.pitch_rad)
+        pitch = float(setpoint.pitch_rad)
+        if horizontal > _ALONG_MPS and bool(np.isfinite(v).all()):
+            tangent = math.atan2(float(v[2]), horizontal)
+            w = (horizontal - _ALONG_MPS) / (_TANGENT_MPS - _ALONG_MPS)
+            pitch = tangent if w >= 1.0 else pitch + w * (tangent - pitch)
         self._state = VehicleState(
             position_enu=np.asarray(setpoint.position_enu, dtype=np.float64).copy(),
             roll_rad=0.0,
