@@ -9,6 +9,7 @@ import yaml
 
 from companion.planner import ArcMethod, Decision, Planner, PlannerParams, Route, VehicleState
 from companion.planner.planner import ACCEL_FEEDFORWARD_MAX_MPS2
+from companion.planner.sensors import Group
 from companion.tuning import SensorConfig, sensor_table
 
 SENSORS = sensor_table(
@@ -137,6 +138,27 @@ def test_nan_ranges_mean_nothing_detected_and_hold_altitude() -> None:
     assert res.setpoint.pitch_rad == 0.0
     with pytest.raises(ValueError, match="finite"):
         VehicleState(np.array([0.0, np.nan, 2.0]), 0.0, 0.0, 0.0)
+
+
+def test_descends_on_the_forward_ground_point_when_the_backward_sensor_has_none() -> None:
+    """A vehicle pitched nose-down looks past the ground behind it (or the service could not
+    pair the reading with an attitude): X_d keeps descending to H_d above the ground the
+    forward sensor measures, instead of holding its height for want of eq. (3)'s second
+    point."""
+    planner = make(z=4.0)
+    back = SENSORS.surface_index[Group.SURFACE_BACK]
+    state = VehicleState(np.array([0.0, 0.0, 4.0]), 0.0, 0.0, 0.0)
+    pitches = []
+    for _ in range(200):
+        ranges = flat_ranges(float(state.position_enu[2]))
+        ranges[back] = math.nan
+        res = planner.step(state, ranges, 0.05)
+        pitches.append(res.setpoint.pitch_rad)
+        sp = res.setpoint  # a body that stays level, as the ranges above assume
+        state = VehicleState(sp.position_enu, 0.0, 0.0, sp.yaw_rad)
+    assert not res.diagnostics.surface_valid  # (the diagnostic still says so)
+    assert min(pitches) == pytest.approx(-0.6)
+    assert state.position_enu[2] == pytest.approx(2.0, abs=0.02)
 
 
 def test_start_far_from_the_route_is_refused() -> None:

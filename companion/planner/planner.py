@@ -470,6 +470,8 @@ class Planner:
         x_h1 = self._ground_point(Group.SURFACE_FORWARD, pts, surface, state)
         x_h2 = self._ground_point(Group.SURFACE_BACK, pts, surface, state)
         surface_valid = x_h1 is not None and x_h2 is not None
+        if x_h1 is not None and x_h2 is None and params.shape_terrain:
+            x_h2 = self._ground_behind(x_h1)
         x_z: tuple[float, float, float] | None = None
         if x_h1 is not None and x_h2 is not None:
             try:
@@ -636,6 +638,21 @@ class Planner:
         if (along > 0.0) == ahead and math.hypot(rel_x, rel_y) <= _GROUND_HOLD_RANGE * self._h_d:
             return held
         return None
+
+    def _ground_behind(self, x_h1: list[float]) -> list[float]:
+        """A stand-in for X_h2 when the backward sensor has no point (it looks past the
+        ground while the vehicle pitches nose-down, or its reading could not be paired with
+        an attitude): the place H_d behind X_h1 along the path's heading, on the slope the
+        ground store fits there, level without a fit. Eq. (4) then steers H_d above the
+        ground the forward sensor measures, instead of X_d holding its height for want of
+        a second point (a jolt in phi_d mid-descent). [x, y, z], world ENU metres."""
+        x1, y1, z1 = x_h1
+        heading = self._path_heading()
+        c, s = math.cos(heading), math.sin(heading)
+        fit = self._ground_store.fit(x1, y1, _GROUND_FIT_RADIUS_M)
+        gx, gy = fit.gradient(x1, y1) if fit is not None else (0.0, 0.0)
+        back = self._h_d
+        return [x1 - back * c, y1 - back * s, z1 - back * (gx * c + gy * s)]
 
     def _remember_ground(
         self, pts: list[list[float]], ranges: FloatArray, surface: dict[Group, int], steep: bool
