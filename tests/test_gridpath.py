@@ -70,6 +70,24 @@ def test_no_way_over_the_grid_is_none() -> None:
     assert plan is None
 
 
+def test_a_passage_narrower_than_the_cells_margin_is_found() -> None:
+    """A corridor 5 m wide: its middle is 2.5 m from both walls, more than the re-plan
+    distance plus 5 cm (2.35 m) but less than that plus half a cell diagonal, so no cell is
+    free at the first two levels (the start's own cell not either). The last level tests
+    cell centres only; the legs it gives keep their own check (>= 2.3 m)."""
+    # The walls 2.5 m from the start and from the row of cell centres at y = 0.25 (the grid
+    # starts 15 m below the base point).
+    walls = np.vstack([_line((0.0, 2.75), (24.0, 2.75)), _line((0.0, -2.25), (24.0, -2.25))])
+    route = Route(np.array([[0.0, 0.0], [34.0, 0.0], [60.0, 0.0]]), 0.0, 0.0)
+    plan, _ = _run(grid_search(route, _at_rest((10.0, 0.25), walls), PARAMS))
+    assert plan is not None and plan.base_index == 1
+    legs = plan.path.segments[: len(plan.stops)]
+    np.testing.assert_allclose(legs[-1].evaluate(1.0), route.base_points[1], atol=1e-12)
+    samples = np.vstack([leg.sample(200) for leg in legs])
+    narrow = PARAMS.d_min_m + 0.5 * PARAMS.clearance_margin_m + 0.05
+    assert float(min_distance(samples, walls).min()) >= narrow - 0.05
+
+
 def test_where_corrections_skip_the_base_point_the_grid_reaches_it() -> None:
     """4 m behind a wall across the route the base point is out of the corrections' reach
     (the one found passes beside it); the grid's legs end exactly on it."""

@@ -46,6 +46,7 @@ SIGHT_BATCH = 32
 """Sight lines tested in one array when pulling the cell path taut."""
 _NEIGHBOURS = ((1, 0), (-1, 0), (0, 1), (0, -1), (1, 1), (1, -1), (-1, 1), (-1, -1))
 _SQRT2 = math.sqrt(2.0)
+_HALF_DIAGONAL_M = CELL_M * math.sqrt(0.5)
 
 
 @dataclass(frozen=True, slots=True)
@@ -77,10 +78,17 @@ def grid_search(
     start_clear = float(min_distance(start[None, :], obstacles, inflation)[0])
     s0 = float(project(route.polyline(), start[None, :])[0][0])
     ahead = np.flatnonzero(route.base_s > s0 + 0.5)[:BASE_POINTS_TRIED]
+    keeps = (d_m, narrow_m) if d_m - narrow_m >= 0.1 else (d_m,)
+    # Each keep with the half-diagonal margin (every point of a free cell keeps it), then the
+    # last with cell centres only: a passage whose middle is clear by less than keep + half a
+    # diagonal has no free cell at all (the legs are checked on their own samples anyway).
+    levels = [(keep, _HALF_DIAGONAL_M) for keep in keeps] + [(keeps[-1], 0.0)]
     for k in ahead.tolist():
         goal = route.base_points[k]
-        for keep_m in (d_m, narrow_m) if d_m - narrow_m >= 0.1 else (d_m,):
-            grid = _Grid.around(start, goal, obstacles, inflation, keep_m, start_clear)
+        for keep_m, cell_margin_m in levels:
+            grid = _Grid.around(
+                start, goal, obstacles, inflation, keep_m, start_clear, cell_margin_m
+            )
             yield
             if grid.blocked_at(goal):
                 continue
@@ -113,22 +121,27 @@ class _Grid:
         inflation: FloatArray,
         keep_m: float,
         start_clear_m: float,
+        cell_margin_m: float = _HALF_DIAGONAL_M,
     ) -> _Grid:
         """The grid over start and goal grown by MARGIN_M; a cell is blocked when its centre
-        is within keep_m + the point's inflation + half a cell diagonal of a point
-        (`_discs`). Around a start already closer than keep_m, the cells it needs to get out
-        are left free (the check of the legs holds it to avoidance.ESCAPE_SLOPE)."""
+        is within keep_m + the point's inflation + cell_margin_m of a point (`_discs`; half
+        a cell diagonal: every point of a free cell keeps keep_m). Around a start whose own
+        cell that blocks (closer than keep_m + cell_margin_m: between two solids, the cells
+        on every side of it are blocked too), the cells it needs to get out are left free
+        (the check of the legs holds it to avoidance.ESCAPE_SLOPE and to its own clearance
+        less 5 cm)."""
         lo = np.minimum(start, goal) - MARGIN_M
         hi = np.maximum(start, goal) + MARGIN_M
         nx, ny = (np.ceil((hi - lo) / CELL_M).astype(int) + 1).tolist()
         blocked = np.zeros((ny, nx), dtype=bool)
-        reach = keep_m + inflation + CELL_M * math.sqrt(0.5)
+        cell_keep_m = keep_m + cell_margin_m
+        reach = cell_keep_m + inflation
         near = np.all((obstacles >= lo - reach[:, None]) & (obstacles <= hi + reach[:, None]), 1)
         pts, reach = obstacles[near], reach[near]
         if len(pts):
             blocked |= _discs(blocked.shape, lo, pts, reach)
-        if start_clear_m < keep_m:
-            free_r = keep_m - start_clear_m + 2.0 * CELL_M
+        if start_clear_m < cell_keep_m:
+            free_r = cell_keep_m - start_clear_m + 2.0 * CELL_M
             iy, ix = np.mgrid[0:ny, 0:nx]
             cx, cy = lo[0] + (ix + 0.5) * CELL_M, lo[1] + (iy + 0.5) * CELL_M
             blocked[np.hypot(cx - start[0], cy - start[1]) <= free_r] = False

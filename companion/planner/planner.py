@@ -7,7 +7,8 @@ Every cycle:
 4. If the path ahead comes within D_min + margin/2 of a remembered point, the horizontal
    path is reshaped (`avoidance.plan_detour`); if no reshaped path keeps D_min the planner
    reports BLOCKED and stops short of the obstacle, then backs out along the distance it has
-   covered and tries the other way (`retreat`). The search spends at most
+   covered and tries the other way (`retreat`); failing that, or after a third retreat,
+   straight legs over a grid of the memory (`gridpath`). The search spends at most
    SEARCH_BUDGET_UNITS work units a cycle and resumes next cycle (docs/avoidance.md).
 5. The reference speed (`speed`) is limited by curvature (lateral acceleration), by the
    distance to the first point that would come closer than D_min, and by the distance to the
@@ -147,6 +148,10 @@ _YAW_RATE_AT_REST_RAD_S = 0.8
 _YAW_ALIGNED_RAD = 0.1
 _GROUND_HOLD_RANGE = 4.0
 _RETRY_BLOCKED_CYCLES = 20
+# Retreats after which a block at rest searches the grid before the covered track: a retreat
+# finds a correction that the memory allows, and a memory that grows at each new try can
+# send the vehicle back and forth between two blocks for as long as it flies.
+_RETREATS_BEFORE_GRID = 3
 _MIN_CHORD_M = 0.5
 """Shortest chord, horizontally or vertically, whose slope counts (`chord_steepness`): over
 shorter ones a few centimetres of range noise would read as a steep slope."""
@@ -375,6 +380,7 @@ class Planner:
         self._band_floor = params.d_min_m
         # Flying straight legs over the grid (`gridpath`): a conflict is met by the grid.
         self._grid_way = False
+        self._retreats = 0  # retreats since the start or the last way over the grid
         # X_d where the blocked state was left without a new path (`_set_blocked`).
         self._unblocked_xy: FloatArray | None = None
 
@@ -421,6 +427,7 @@ class Planner:
         self.route = route
         self._set_path(route, PathMode.ROUTE, Side.NONE)
         self._detour_end_s = 0.0
+        self._retreats = 0
         self._blocked = False
         self._unblocked_xy = None
 
@@ -1230,7 +1237,9 @@ class Planner:
         """The re-plan search in work units (yields False per unit): a correction from here;
         failing that (yields True once: blocked) and at rest, a retreat along the covered
         track to where a correction on the other side exists; failing that too, straight
-        legs over a grid of the memory (`gridpath`). On such legs, only the grid again."""
+        legs over a grid of the memory (`gridpath`). After _RETREATS_BEFORE_GRID retreats the
+        grid comes before the retreat. On legs taken because nothing else was found, only
+        the grid again."""
         if self._grid_way:
             # On a way over the grid, a conflict is met the same way: stop, search the grid.
             yield True
@@ -1247,6 +1256,10 @@ class Planner:
         yield True
         if not at_rest:
             return _Resolved()
+        if self._retreats >= _RETREATS_BEFORE_GRID:
+            grid = yield from _units(grid_search(self.route, request, self.params))
+            if grid is not None:
+                return _Resolved(grid=grid)
         track = backwards_track(self._xd_prev[:2], self._track)
         plan = yield from _units(
             retreat_search(
@@ -1375,16 +1388,25 @@ class Planner:
     def _take_grid_way(self, plan: GridPlan, events: list[str]) -> None:
         """Fly the straight legs over the grid to a base point, stopping at every corner."""
         legs = len(plan.stops)
+        why = (
+            f"backed out {self._retreats} times"
+            if self._retreats >= _RETREATS_BEFORE_GRID
+            else "no correction or retreat"
+        )
         events.append(
-            f"no correction or retreat: {legs} straight leg{'s' if legs > 1 else ''} "
+            f"{why}: {legs} straight leg{'s' if legs > 1 else ''} "
             f"round the obstacles to base point {plan.base_index + 1}, stopping at each corner"
         )
+        after_retreats = self._retreats >= _RETREATS_BEFORE_GRID
+        self._retreats = 0
         self._say_passed_beside(plan.path, self._xd_prev[:2], plan.rejoin_s, events)
         self._blocked = False
         self._unblocked_xy = None
         self._set_path(plan.path, PathMode.AROUND, Side.NONE)
         self._lower_band_floor()
-        self._grid_way = True
+        # Taken for a vehicle going back and forth, a conflict on the legs is met as on any
+        # path (a correction first); taken because nothing else was found, by the grid again.
+        self._grid_way = not after_retreats
         self._stops = [0.0, *plan.stops]
         self._detour_end_s = plan.legs_length_m
         self._escape = self._escape_stretch()
@@ -1402,6 +1424,7 @@ class Planner:
             plan.back_length_m + detour.path.length - (self.route.length - detour.rejoin_s)
         )
         self._after_retreat = (detour.mode, detour.side, rejoin_on_path)
+        self._retreats += 1
         events.append(f"dead end: backing out {plan.back_m:.0f} m, then {detour.side.value}")
         self._blocked = False
         self._unblocked_xy = None
