@@ -12,6 +12,7 @@ from companion.planner.avoidance import (
     AvoidanceRequest,
     _median,
     _start_direction,
+    comes_closer,
     free_intervals,
     max_abs_curvature,
     min_distance,
@@ -279,3 +280,21 @@ print(sorted(set(sys.modules) - before))
 def test_median_is_numpys(n: int) -> None:
     values = np.random.default_rng(n).normal(size=n)
     assert _median(values) == float(np.median(values))
+
+
+def test_an_escape_from_inside_one_disc_may_not_close_on_another_point() -> None:
+    """A path out of a point's inflated disc (the vehicle 2 m inside it) gains clearance from
+    that point as an escape must, but runs at a wall point 4 m ahead, 0.2 m beside its
+    line: measured as a minimum over all points, its floor (below 0 for the first 7 m) let
+    it pass 0.2 m from that point."""
+    east = np.array([1.0, 0.0])
+    path = [segment_through(np.zeros(2), east, np.array([8.0, 0.0]), east)]
+    inflated = np.array([[-2.0, 0.0]])
+    inflation = np.array([4.0])  # the start is 2 m inside its disc
+    assert not comes_closer(path, inflated, 2.0, inflation, -2.0)
+    wall = np.array([[4.0, 0.2]])  # 4.0 m from the start, 0.2 m beside the path
+    both = np.vstack([inflated, wall])
+    assert comes_closer(path, both, 2.0, np.array([4.0, 0.0]), -2.0)
+    # A point the path moves away from, or passes no nearer than it started, does not count.
+    behind = np.array([[-1.0, 1.5]])
+    assert not comes_closer(path, np.vstack([inflated, behind]), 2.0, np.array([4.0, 0.0]), -2.0)

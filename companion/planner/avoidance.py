@@ -68,6 +68,8 @@ after every candidate that keeps the margin (see `detour_search`)."""
 THROUGH_BASE_COST_M = 20.0
 """Extra cost of a candidate that reaches a base point from another direction than the
 route's (see `_with_transitions`)."""
+ESCAPE_TOLERANCE_M = 0.05
+"""How much nearer than at its start an escape may pass another point (sampling)."""
 ESCAPE_SLOPE = 0.3
 """A correction that starts closer than D_min (new points appeared beside the vehicle) must
 gain at least this much clearance per metre along it until it is out."""
@@ -611,17 +613,21 @@ def comes_closer(
     """True if a sample of the segments (spaced as `sample_segments` spaces them) is closer
     than limit_m to an obstacle point's inflated disc. A path that starts closer (start_m,
     below limit_m) must move out: at a sample s metres along, the limit is
-    min(limit_m, start_m + ESCAPE_SLOPE * s). Segment by segment, stopping at the first
+    min(limit_m, start_m + ESCAPE_SLOPE * s), and no other point may come nearer than
+    it was at the start (`_approaches_another`). Segment by segment, stopping at the first
     that fails: most rejected candidates fail early, and a segment's bounding box leaves out
     most points. memo: a search's `ClearanceMemo`, made of these obstacles and inflations
     (it measures against its own copy, each segment once)."""
     along = 0.0
+    start_xy: FloatArray | None = None
     for seg in segments:
         if memo is not None:
             samples, near = memo.measure(seg, limit_m)
         else:
             samples = sample_segments([seg])
             near = min_distance_within(samples, obstacles_xy, limit_m, inflation_m)
+        if start_xy is None:
+            start_xy = samples[0]
         if start_m is None or start_m >= limit_m or along > (limit_m - start_m) / ESCAPE_SLOPE:
             if float(near.min()) < limit_m:
                 return True
@@ -630,8 +636,44 @@ def comes_closer(
             s = along + np.concatenate([[0.0], np.cumsum(step)])
             if np.any(near < np.minimum(limit_m, start_m + ESCAPE_SLOPE * s)):
                 return True
+            if _approaches_another(samples, start_xy, obstacles_xy, inflation_m, limit_m):
+                return True
         along += seg.length
     return False
+
+
+def _approaches_another(
+    samples_xy: FloatArray,
+    start_xy: FloatArray,
+    obstacles_xy: FloatArray,
+    inflation_m: FloatArray | None,
+    limit_m: float,
+) -> bool:
+    """True if a sample of a path that moves out from inside limit_m comes nearer to some
+    point's inflated disc than min(limit_m, that point's distance from the path's start) -
+    ESCAPE_TOLERANCE_M.
+
+    The escape's own floor rises from the nearest point's distance; measured as a minimum
+    over all points, it lets the path close on any other point down to that floor. From
+    deep inside one point's inflation (a disc the memory widened for a flank's foot) the
+    floor is below 0, and a way out of that disc could lead into a wall seen 1.4 m ahead."""
+    if len(obstacles_xy) == 0:
+        return False
+    infl = np.zeros(len(obstacles_xy)) if inflation_m is None else inflation_m
+    grow = limit_m + float(infl.max())
+    lo = samples_xy.min(axis=0) - grow
+    hi = samples_xy.max(axis=0) + grow
+    inside = np.all((obstacles_xy >= lo) & (obstacles_xy <= hi), axis=1)
+    if not inside.any():
+        return False
+    pts, e = obstacles_xy[inside], infl[inside]
+    start = np.hypot(pts[:, 0] - start_xy[0], pts[:, 1] - start_xy[1]) - e
+    floor = np.minimum(start, limit_m) - ESCAPE_TOLERANCE_M
+    near = (
+        np.hypot(samples_xy[:, 0, None] - pts[None, :, 0], samples_xy[:, 1, None] - pts[None, :, 1])
+        - e[None, :]
+    )
+    return bool(np.any(near < floor[None, :]))
 
 
 def _hold_and_rejoin(
