@@ -41,7 +41,7 @@ from companion.planner.bezier import CubicBezier, segment_through
 from companion.planner.params import PlannerParams
 from companion.planner.path import Path, Polyline, project
 from companion.planner.route import Route
-from companion.planner.types import FloatArray, IntArray, PathMode, Side
+from companion.planner.types import BoolArray, FloatArray, IntArray, PathMode, Side
 
 SIDE_SWITCH_PENALTY_M = 4.0
 DEAD_END_PENALTY_M = 100.0
@@ -95,6 +95,14 @@ def min_distance(
     there are no points."""
     if len(obstacles_xy) == 0:
         return np.full(len(samples_xy), np.inf)
+    return np.asarray(disc_distances(samples_xy, obstacles_xy, inflation_m).min(axis=1))
+
+
+def disc_distances(
+    samples_xy: FloatArray, obstacles_xy: FloatArray, inflation_m: FloatArray | None = None
+) -> FloatArray:
+    """Distance from every sample (n, 2) to every obstacle point (k, 2), less that point's
+    inflation (k,) when given: (n, k) metres."""
     # Per coordinate, not a sum over a length-2 axis: numpy reduces short axes slowly.
     dx = samples_xy[:, 0, None] - obstacles_xy[None, :, 0]
     dy = samples_xy[:, 1, None] - obstacles_xy[None, :, 1]
@@ -105,7 +113,7 @@ def min_distance(
     np.sqrt(dx, out=dx)
     if inflation_m is not None:
         np.subtract(dx, inflation_m[None, :], out=dx)
-    return np.asarray(dx.min(axis=1), dtype=np.float64)
+    return dx
 
 
 def min_distance_within(
@@ -120,12 +128,23 @@ def min_distance_within(
     before the (n, k) distances."""
     if len(samples_xy) == 0 or len(obstacles_xy) == 0:
         return np.full(len(samples_xy), np.inf)
+    inside = _in_reach(samples_xy, obstacles_xy, cutoff_m, inflation_m)
+    infl = inflation_m[inside] if inflation_m is not None else None
+    return min_distance(samples_xy, obstacles_xy[inside], infl)
+
+
+def _in_reach(
+    samples_xy: FloatArray,
+    obstacles_xy: FloatArray,
+    cutoff_m: float,
+    inflation_m: FloatArray | None,
+) -> BoolArray:
+    """Mask (k,) of the obstacle points in the samples' bounding box grown by cutoff_m plus
+    the largest inflation: the only ones whose inflated disc can come nearer than cutoff_m."""
     grow = cutoff_m + (float(inflation_m.max()) if inflation_m is not None else 0.0)
     lo = samples_xy.min(axis=0) - grow
     hi = samples_xy.max(axis=0) + grow
-    inside = np.all((obstacles_xy >= lo) & (obstacles_xy <= hi), axis=1)
-    infl = inflation_m[inside] if inflation_m is not None else None
-    return min_distance(samples_xy, obstacles_xy[inside], infl)
+    return np.asarray(np.all((obstacles_xy >= lo) & (obstacles_xy <= hi), axis=1), dtype=np.bool_)
 
 
 _FEW_POINTS = 3
@@ -619,15 +638,12 @@ def comes_closer(
     most points. memo: a search's `ClearanceMemo`, made of these obstacles and inflations
     (it measures against its own copy, each segment once)."""
     along = 0.0
-    start_xy: FloatArray | None = None
     for seg in segments:
         if memo is not None:
             samples, near = memo.measure(seg, limit_m)
         else:
             samples = sample_segments([seg])
             near = min_distance_within(samples, obstacles_xy, limit_m, inflation_m)
-        if start_xy is None:
-            start_xy = samples[0]
         if start_m is None or start_m >= limit_m or along > (limit_m - start_m) / ESCAPE_SLOPE:
             if float(near.min()) < limit_m:
                 return True
@@ -636,6 +652,7 @@ def comes_closer(
             s = along + np.concatenate([[0.0], np.cumsum(step)])
             if np.any(near < np.minimum(limit_m, start_m + ESCAPE_SLOPE * s)):
                 return True
+            start_xy = segments[0].control[0]
             if _approaches_another(samples, start_xy, obstacles_xy, inflation_m, limit_m):
                 return True
         along += seg.length
@@ -656,24 +673,17 @@ def _approaches_another(
     The escape's own floor rises from the nearest point's distance; measured as a minimum
     over all points, it lets the path close on any other point down to that floor. From
     deep inside one point's inflation (a disc the memory widened for a flank's foot) the
-    floor is below 0, and a way out of that disc could lead into a wall seen 1.4 m ahead."""
+    floor is below 0, and a way out of that disc could lead into another solid."""
     if len(obstacles_xy) == 0:
         return False
-    infl = np.zeros(len(obstacles_xy)) if inflation_m is None else inflation_m
-    grow = limit_m + float(infl.max())
-    lo = samples_xy.min(axis=0) - grow
-    hi = samples_xy.max(axis=0) + grow
-    inside = np.all((obstacles_xy >= lo) & (obstacles_xy <= hi), axis=1)
+    inside = _in_reach(samples_xy, obstacles_xy, limit_m, inflation_m)
     if not inside.any():
         return False
-    pts, e = obstacles_xy[inside], infl[inside]
-    start = np.hypot(pts[:, 0] - start_xy[0], pts[:, 1] - start_xy[1]) - e
-    floor = np.minimum(start, limit_m) - ESCAPE_TOLERANCE_M
-    near = (
-        np.hypot(samples_xy[:, 0, None] - pts[None, :, 0], samples_xy[:, 1, None] - pts[None, :, 1])
-        - e[None, :]
-    )
-    return bool(np.any(near < floor[None, :]))
+    pts = obstacles_xy[inside]
+    infl = None if inflation_m is None else inflation_m[inside]
+    floor = np.minimum(disc_distances(start_xy[None, :], pts, infl)[0], limit_m)
+    near = disc_distances(samples_xy, pts, infl)
+    return bool(np.any(near < floor[None, :] - ESCAPE_TOLERANCE_M))
 
 
 def _hold_and_rejoin(
