@@ -90,6 +90,41 @@ def test_reaches_the_goal_and_stops() -> None:
     assert done[0].diagnostics.speed_ref_mps == 0.0
 
 
+def test_at_rest_x_d_moves_to_a_new_h_d_within_its_limits() -> None:
+    """Stopped at the goal over flat ground (z = 0) with H_d raised to 3 m: X_d climbs to
+    3 m and stops there, no faster than half the path's vertical speed at phi_max, speeding
+    up and slowing down at accel_max, with the climb fed forward as velocity and reported as
+    the reference speed; it does not move horizontally. (Eq. (5) alone moves X_d only along
+    its path: at rest it held 2 m.)"""
+    params = PlannerParams()
+    planner = make(params)
+    state = VehicleState(np.array([0.0, 0.0, 2.0]), 0.0, 0.0, 0.0)
+    for _ in range(1000):
+        res = planner.step(state, flat_ranges(float(state.position_enu[2])), 0.05)
+        state = VehicleState(res.setpoint.position_enu, 0.0, 0.0, res.setpoint.yaw_rad)
+        if res.diagnostics.finished:
+            break
+    assert res.diagnostics.finished
+    goal_xy = res.setpoint.position_enu[:2].copy()
+    planner.set_desired_height(3.0)
+    z = [float(state.position_enu[2])]
+    vz = [0.0]
+    for _ in range(200):
+        res = planner.step(state, flat_ranges(float(state.position_enu[2])), 0.05)
+        sp = res.setpoint
+        np.testing.assert_allclose(sp.position_enu[:2], goal_xy, atol=1e-9)
+        np.testing.assert_allclose(sp.velocity_enu[:2], 0.0, atol=1e-12)
+        assert sp.velocity_enu[2] == pytest.approx((float(sp.position_enu[2]) - z[-1]) / 0.05)
+        assert res.diagnostics.speed_ref_mps == pytest.approx(abs(float(sp.velocity_enu[2])))
+        z.append(float(sp.position_enu[2]))
+        vz.append(float(sp.velocity_enu[2]))
+        state = VehicleState(sp.position_enu, 0.0, 0.0, sp.yaw_rad)
+    top = 0.5 * params.v_d_mps * math.sin(params.phi_max_rad)
+    assert max(vz) == pytest.approx(top) and min(vz) >= 0.0
+    assert max(np.abs(np.diff(vz))) <= params.accel_max_mps2 * 0.05 + 1e-12
+    assert max(z) < 3.001 and z[-1] == pytest.approx(3.0, abs=1e-3) and vz[-1] == 0.0
+
+
 def test_paper_arc_method_agrees_with_exact() -> None:
     exact = fly(make(PlannerParams(arc_method=ArcMethod.EXACT)), 300)
     paper = fly(make(PlannerParams(arc_method=ArcMethod.PAPER, paper_delta=1e-5)), 300)

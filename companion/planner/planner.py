@@ -171,6 +171,13 @@ heading (`Planner._surface_pitch`), metres."""
 _SURFACE_SNAP_M = 0.2
 """... at the ground point nearest there, when one lies this near; else eq. (4) steers, no
 lower than that height, metres."""
+_REST_CLIMB_FRACTION = 0.5
+"""At rest X_d's height moves toward H_d from the ground under it at up to this fraction of
+the vertical speed the path allows (v_d sin(phi_max)) (`Planner._climb_at_rest`)."""
+_REST_DEADBAND_M = 0.03
+"""... when X_d is more than this off that height, metres; and on until within
+_REST_SETTLED_M."""
+_REST_SETTLED_M = 1e-3
 _SLOPE_AHEAD_MARGIN_RAD = 1e-3
 """Where no ground point lies ahead, the fitted slope under X_d takes over from eq. (4) on
 a descent only when it descends more steeply by this much, radians: over level ground the
@@ -358,6 +365,9 @@ class Planner:
         self._sector_rows = np.flatnonzero(sensors.fov_rad > 0.0)
         self._arc_fans: dict[tuple[int, int], FloatArray] = {}  # (row, n): body FLU fan
         self._scan: list[float] = []  # yaw offsets still to turn to at rest, radians
+        self._climb = 0.0  # X_d's vertical speed at rest (`_climb_at_rest`), m/s
+        self._settling = False  # ... and whether it is on its way to H_d there
+        self._rest_keep_m = params.d_min_m + params.clearance_margin_m
         self._scan_held_s = 0.0
         self._scan_place: tuple[int, int] | None = None
         self._scans_here = 0
@@ -555,6 +565,8 @@ class Planner:
             )
             self._segment, self._t, self._z = seg, t, z
             self._s = self._path.arc_length_at(seg, t)
+        climb_mps = self._climb_at_rest(self._v <= speed.STOPPED_MPS, dt_s)
+        self._z += climb_mps * dt_s
         x, y = self._path.segments[self._segment].point(self._t)
         x_d = np.array([x, y, self._z])
 
@@ -576,7 +588,7 @@ class Planner:
             [
                 self._v * (math.cos(heading) * cos_phi),
                 self._v * (math.sin(heading) * cos_phi),
-                self._v * math.sin(phi_d),
+                self._v * math.sin(phi_d) + climb_mps,
             ]
         )
         acceleration = self._acceleration(velocity, dt_s)
@@ -610,7 +622,7 @@ class Planner:
             phi_d_rad=phi_d,
             segment=self._segment,
             parameter=self._t,
-            speed_ref_mps=self._v,
+            speed_ref_mps=self._v if climb_mps == 0.0 else float(np.linalg.norm(velocity)),
             min_range_m=min_range,
             surface_valid=surface_valid,
             replanned=replanned,
@@ -781,6 +793,58 @@ class Planner:
         if floor_q > -math.inf:
             phi_d = max(phi_d, min(math.atan2(floor_q - zd, _SURFACE_AHEAD_M), phi_max_rad))
         return phi_d
+
+    def _climb_at_rest(self, at_rest: bool, dt_s: float) -> float:
+        """X_d's vertical speed this cycle on top of eq. (5)'s, m/s (up positive).
+
+        Eq. (5) moves X_d only along its path, so a stop keeps the height X_d had, and its
+        offset from H_d, for as long as the vehicle stands (a stop on the way into a hollow
+        held X_d 0.11 m high for 20 s: random world 492, ring-8), and an H_d changed at rest
+        is not taken up. At rest (with `shape_terrain`) X_d moves toward the height H_d from
+        the ground under it (`ground.floor_z` of the stored points within H_d, no lower than
+        `ground.fit_floor_z` of the surface fitted there), at up to _REST_CLIMB_FRACTION
+        v_d sin(phi_max), speeding up and slowing down at accel_max so that it stops there;
+        where no stored point lies within H_d or no surface is fitted it holds, and it only
+        climbs while a remembered obstacle point lies within D_min + margin of X_d
+        horizontally (the store leaves steep points out, so its floor beside or on top of a
+        solid can lie below the solid's surface: random world 487, ring-8, came down 4 cm
+        over a box's top to 1.91 m from it). It starts
+        only when X_d is more than _REST_DEADBAND_M off (sensor noise does not move a
+        vehicle at rest), and goes on until within _REST_SETTLED_M. Once X_d
+        moves again, this speed ramps down to zero at accel_max (eq. (5) steers from there)."""
+        params = self.params
+        want = 0.0
+        if at_rest and params.shape_terrain:
+            xd, yd, zd = self._xd_prev_xyz
+            store = self._ground_store
+            fit = store.fit(xd, yd, _GROUND_FIT_RADIUS_M)
+            points, r2 = store.near(xd, yd, self._h_d)
+            error = 0.0
+            if fit is not None and len(r2):
+                error = (
+                    max(floor_z(points[:, 2], r2, self._h_d), fit_floor_z(fit, xd, yd, self._h_d))
+                    - zd
+                )
+            if error < 0.0 and len(self._memory.near(self._xd_prev[:2], self._rest_keep_m)):
+                # The store leaves steep points out: beside (or on top of) a solid the
+                # ground's floor may lie below the solid's nearest surface. Climb only.
+                error = 0.0
+            if abs(error) > _REST_DEADBAND_M:
+                self._settling = True
+            elif abs(error) < _REST_SETTLED_M:
+                self._settling = False
+            if self._settling:
+                top = _REST_CLIMB_FRACTION * params.v_d_mps * math.sin(params.phi_max_rad)
+                # The speed from which steps slowing by accel_max dt a cycle stop within
+                # |error| (sqrt(2 a e) less the discrete steps' overshoot).
+                step = params.accel_max_mps2 * dt_s
+                brake = step * (math.sqrt(2.0 * abs(error) / (step * dt_s) + 0.25) - 0.5)
+                want = math.copysign(min(top, brake, abs(error) / dt_s), error)
+        else:
+            self._settling = False
+        dv = params.accel_max_mps2 * dt_s
+        self._climb = min(max(want, self._climb - dv), self._climb + dv)
+        return self._climb
 
     def _ground_points(
         self, points: FloatArray, surface: dict[Group, int], state: VehicleState

@@ -100,7 +100,8 @@ class Diagnostics:
     """Why the planner produced its setpoint.
 
     phi_star_rad / threshold_rad: per obstacle sensor (table order), eqs (6)-(7).
-    speed_ref_mps: reference speed after curvature and stopping limits.
+    speed_ref_mps: reference speed after curvature and stopping limits; while X_d at rest
+      moves to H_d (`Planner._climb_at_rest`), the speed of that climb.
     """
 
     decision: Decision
