@@ -808,7 +808,7 @@ class Planner:
         climbs while a remembered obstacle point lies within D_min + margin of X_d
         horizontally (the store leaves steep points out, so its floor beside or on top of a
         solid can lie below the solid's surface: random world 487, ring-8, came down 4 cm
-        over a box's top to 1.91 m from it). It starts
+        over a steep solid to 1.91 m from it). It starts
         only when X_d is more than _REST_DEADBAND_M off (sensor noise does not move a
         vehicle at rest), and goes on until within _REST_SETTLED_M. Once X_d
         moves again, this speed ramps down to zero at accel_max (eq. (5) steers from there)."""
