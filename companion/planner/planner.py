@@ -367,7 +367,6 @@ class Planner:
         self._scan: list[float] = []  # yaw offsets still to turn to at rest, radians
         self._climb = 0.0  # X_d's vertical speed at rest (`_climb_at_rest`), m/s
         self._settling = False  # ... and whether it is on its way to H_d there
-        self._rest_keep_m = params.d_min_m + params.clearance_margin_m
         self._scan_held_s = 0.0
         self._scan_place: tuple[int, int] | None = None
         self._scans_here = 0
@@ -800,51 +799,48 @@ class Planner:
         Eq. (5) moves X_d only along its path, so a stop keeps the height X_d had, and its
         offset from H_d, for as long as the vehicle stands (a stop on the way into a hollow
         held X_d 0.11 m high for 20 s: random world 492, ring-8), and an H_d changed at rest
-        is not taken up. At rest (with `shape_terrain`) X_d moves toward the height H_d from
-        the ground under it (`ground.floor_z` of the stored points within H_d, no lower than
-        `ground.fit_floor_z` of the surface fitted there), at up to _REST_CLIMB_FRACTION
-        v_d sin(phi_max), speeding up and slowing down at accel_max so that it stops there;
-        where no stored point lies within H_d or no surface is fitted it holds, and it only
-        climbs while a remembered obstacle point lies within D_min + margin of X_d
-        horizontally (the store leaves steep points out, so its floor beside or on top of a
-        solid can lie below the solid's surface: random world 487, ring-8, came down 4 cm
-        over a steep solid to 1.91 m from it). It starts
-        only when X_d is more than _REST_DEADBAND_M off (sensor noise does not move a
-        vehicle at rest), and goes on until within _REST_SETTLED_M. Once X_d
-        moves again, this speed ramps down to zero at accel_max (eq. (5) steers from there)."""
+        is not taken up. At rest (with `shape_terrain`) X_d moves by `_rest_height_error`
+        at up to _REST_CLIMB_FRACTION v_d sin(phi_max), speeding up and slowing down at
+        accel_max so that it stops there. It starts only when X_d is more than
+        _REST_DEADBAND_M off (sensor noise does not move a vehicle at rest), and goes on
+        until within _REST_SETTLED_M. Once X_d moves again, this speed ramps down to zero at
+        accel_max (eq. (5) steers from there)."""
         params = self.params
         want = 0.0
-        if at_rest and params.shape_terrain:
-            xd, yd, zd = self._xd_prev_xyz
-            store = self._ground_store
-            fit = store.fit(xd, yd, _GROUND_FIT_RADIUS_M)
-            points, r2 = store.near(xd, yd, self._h_d)
-            error = 0.0
-            if fit is not None and len(r2):
-                error = (
-                    max(floor_z(points[:, 2], r2, self._h_d), fit_floor_z(fit, xd, yd, self._h_d))
-                    - zd
-                )
-            if error < 0.0 and len(self._memory.near(self._xd_prev[:2], self._rest_keep_m)):
-                # The store leaves steep points out: beside (or on top of) a solid the
-                # ground's floor may lie below the solid's nearest surface. Climb only.
-                error = 0.0
-            if abs(error) > _REST_DEADBAND_M:
-                self._settling = True
-            elif abs(error) < _REST_SETTLED_M:
-                self._settling = False
-            if self._settling:
-                top = _REST_CLIMB_FRACTION * params.v_d_mps * math.sin(params.phi_max_rad)
-                # The speed from which steps slowing by accel_max dt a cycle stop within
-                # |error| (sqrt(2 a e) less the discrete steps' overshoot).
-                step = params.accel_max_mps2 * dt_s
-                brake = step * (math.sqrt(2.0 * abs(error) / (step * dt_s) + 0.25) - 0.5)
-                want = math.copysign(min(top, brake, abs(error) / dt_s), error)
-        else:
+        error = self._rest_height_error() if at_rest and params.shape_terrain else 0.0
+        if abs(error) > _REST_DEADBAND_M:
+            self._settling = True
+        elif abs(error) < _REST_SETTLED_M:
             self._settling = False
+        if self._settling:
+            top = _REST_CLIMB_FRACTION * params.v_d_mps * math.sin(params.phi_max_rad)
+            brake = speed.stepped_braking_speed(abs(error), params.accel_max_mps2, dt_s)
+            want = math.copysign(min(top, brake, abs(error) / dt_s), error)
         dv = params.accel_max_mps2 * dt_s
         self._climb = min(max(want, self._climb - dv), self._climb + dv)
         return self._climb
+
+    def _rest_height_error(self) -> float:
+        """How far X_d (of the last cycle) lies below the height H_d from the ground under
+        it, metres (negative: above): `ground.floor_z` of the stored points within H_d, no
+        lower than `ground.fit_floor_z` of the surface fitted there. 0 where no stored point
+        lies within H_d or no surface is fitted, and no lower than 0 while a remembered
+        obstacle point lies within D_min + margin of X_d horizontally: the store leaves steep
+        points out, so its floor beside or on top of a solid can lie below the solid's
+        surface (random world 487, ring-8, came down 4 cm over a steep solid to 1.91 m from
+        it)."""
+        xd, yd, zd = self._xd_prev_xyz
+        store = self._ground_store
+        fit = store.fit(xd, yd, _GROUND_FIT_RADIUS_M)
+        points, r2 = store.near(xd, yd, self._h_d)
+        if fit is None or len(r2) == 0:
+            return 0.0
+        floor = max(floor_z(points[:, 2], r2, self._h_d), fit_floor_z(fit, xd, yd, self._h_d))
+        error: float = floor - zd
+        keep_m = self.params.d_min_m + self.params.clearance_margin_m
+        if error < 0.0 and len(self._memory.near(self._xd_prev[:2], keep_m)):
+            return 0.0
+        return error
 
     def _ground_points(
         self, points: FloatArray, surface: dict[Group, int], state: VehicleState

@@ -29,6 +29,14 @@ def braking_speed(distance_m: float, accel_mps2: float) -> float:
     return math.sqrt(2.0 * accel_mps2 * max(distance_m, 0.0))
 
 
+def stepped_braking_speed(distance_m: float, accel_mps2: float, dt_s: float) -> float:
+    """The speed from which slowing by accel_mps2 dt_s a cycle of dt_s stops within
+    distance_m: `braking_speed` less the overshoot of braking in steps, so that a speed
+    commanded each cycle does not pass its stop (0 if distance_m <= 0)."""
+    step = accel_mps2 * dt_s
+    return step * (math.sqrt(2.0 * max(distance_m, 0.0) / (step * dt_s) + 0.25) - 0.5)
+
+
 def reacting_speed(distance_m: float, accel_mps2: float, reaction_s: float) -> float:
     """The speed v from which a vehicle that keeps v for reaction_s seconds, then brakes at
     accel_mps2, stops within distance_m: v t + v^2 / (2 a) = d (0 if d <= _REST_M)."""
