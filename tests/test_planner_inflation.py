@@ -14,6 +14,7 @@ import yaml
 
 from companion.harness.closed_loop import sense
 from companion.planner import Planner, PlannerParams, Route, VehicleState
+from companion.planner.avoidance import min_distance
 from companion.planner.memory import ObstacleMemory
 from companion.sim.sensing import SensorFan
 from companion.sim.world import World
@@ -94,3 +95,39 @@ def test_a_sloped_flank_keeps_the_inflation_its_slope_needs(layout: str, slope_d
     assert measured.sum() >= 20
     assert float(np.nanmax(slope)) <= theta + math.radians(0.5)
     assert float(inflation[measured].min()) >= needed - 0.01
+
+
+@pytest.mark.parametrize("slope_deg", [45.0, 55.0, 70.0])
+def test_a_flank_met_between_the_beams_reaches_down_from_its_high_points(
+    slope_deg: float,
+) -> None:
+    """Paper-11: the vehicle flies straight past a mesa 50 degrees right of its heading,
+    where neither the level forward beam nor the level side beam meets it; only the beam
+    25 degrees up at 45 degrees meets the flank, 3-5 m above flight height, on chords too
+    long to give its slope. The memory holds the flank within 0.25 m of where it crosses
+    flight height (3 m away at the end), not where the beam met it (held 0.6-2.7 m
+    farther when such points were kept as seen)."""
+    gap_m, top_r, height = 3.0, 3.0, 8.0
+    flank_r = top_r + (height - 2.0) / math.tan(math.radians(slope_deg))  # at flight height
+    bearing = math.radians(-50.0)
+    centre = ((flank_r + gap_m) * math.cos(bearing), (flank_r + gap_m) * math.sin(bearing))
+    mesa = {
+        "type": "mesa",
+        "center": list(centre),
+        "radius_m": top_r,
+        "height_m": height,
+        "side_slope_deg": slope_deg,
+    }
+    world = World.from_config(WorldConfig.model_validate({"features": [mesa]}), Path("."))
+    specs = yaml.safe_load((CONFIG / "paper-11.yaml").read_text())
+    sensors = sensor_table([SensorConfig.model_validate(s) for s in specs])
+    route = Route(np.array([[-12.0, 0.0], [60.0, 0.0]]), 0.0, 0.0)
+    planner = Planner(PlannerParams(), sensors, route, np.array([-12.0, 0.0, 2.0]))
+    fan = SensorFan(sensors.boresights_flu, sensors.fov_rad)
+    for x in np.arange(-12.0, 0.001, 0.05):
+        state = VehicleState(np.array([x, 0.0, 2.0]), 0.0, 0.0, 0.0)
+        planner.step(state, sense(world, sensors, state, fan), 0.05)
+    memory = planner._memory
+    held = min_distance(np.zeros((1, 2)), memory.points_xy(), memory.inflation_m())[0]
+    assert len(memory) >= 10
+    assert float(held) <= gap_m + 0.25
