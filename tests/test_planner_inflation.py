@@ -39,18 +39,33 @@ def _mesa(slope_deg: float) -> dict:  # type: ignore[type-arg]
     }
 
 
-def _pass_by(feature: dict, layout: str) -> ObstacleMemory:  # type: ignore[type-arg]
+def _memory_after(
+    feature: dict,  # type: ignore[type-arg]
+    layout: str,
+    positions: list[tuple[float, float]],
+) -> ObstacleMemory:
+    """The planner's memory after it is stepped (heading east, 2 m up, 20 Hz) through
+    `positions` (x, y) beside the solid, the ranges ray-cast in the simulator's world."""
     world = World.from_config(WorldConfig.model_validate({"features": [feature]}), Path("."))
     specs = yaml.safe_load((CONFIG / f"{layout}.yaml").read_text())
     sensors = sensor_table([SensorConfig.model_validate(s) for s in specs])
-    route = Route(np.array([[0.0, 0.0], [60.0, 0.0]]), 0.0, 0.0)
-    planner = Planner(PlannerParams(), sensors, route, np.array([0.0, 0.0, 2.0]))
+    x0, y0 = positions[0]
+    route = Route(np.array([[x0, y0], [x0 + 60.0, y0]]), 0.0, 0.0)
+    planner = Planner(PlannerParams(), sensors, route, np.array([x0, y0, 2.0]))
     fan = SensorFan(sensors.boresights_flu, sensors.fov_rad)
-    for x in np.arange(0.0, 20.0, 0.05):
-        gap = 4.4 - 1.5 * (1.0 - abs(x - 10.0) / 10.0)
-        state = VehicleState(np.array([x, FACE_Y - gap, 2.0]), 0.0, 0.0, 0.0)
+    for x, y in positions:
+        state = VehicleState(np.array([x, y, 2.0]), 0.0, 0.0, 0.0)
         planner.step(state, sense(world, sensors, state, fan), 0.05)
     return planner._memory
+
+
+def _pass_by(feature: dict, layout: str) -> ObstacleMemory:  # type: ignore[type-arg]
+    """The pass of the module docstring: the gap narrows from 4.4 m to 2.9 m and widens."""
+    xs = np.arange(0.0, 20.0, 0.05)
+    gaps = 4.4 - 1.5 * (1.0 - np.abs(xs - 10.0) / 10.0)
+    return _memory_after(
+        feature, layout, list(zip(xs.tolist(), (FACE_Y - gaps).tolist(), strict=True))
+    )
 
 
 def _middle(memory: ObstacleMemory) -> tuple[np.ndarray, np.ndarray]:
@@ -125,16 +140,8 @@ def test_a_flank_met_between_the_beams_reaches_down_from_its_high_points(
         "height_m": height,
         "side_slope_deg": slope_deg,
     }
-    world = World.from_config(WorldConfig.model_validate({"features": [mesa]}), Path("."))
-    specs = yaml.safe_load((CONFIG / "paper-11.yaml").read_text())
-    sensors = sensor_table([SensorConfig.model_validate(s) for s in specs])
-    route = Route(np.array([[-12.0, 0.0], [60.0, 0.0]]), 0.0, 0.0)
-    planner = Planner(PlannerParams(), sensors, route, np.array([-12.0, 0.0, 2.0]))
-    fan = SensorFan(sensors.boresights_flu, sensors.fov_rad)
-    for x in np.arange(-12.0, 0.001, 0.05):
-        state = VehicleState(np.array([x, 0.0, 2.0]), 0.0, 0.0, 0.0)
-        planner.step(state, sense(world, sensors, state, fan), 0.05)
-    memory = planner._memory
+    xs = np.arange(-12.0, 0.001, 0.05).tolist()
+    memory = _memory_after(mesa, "paper-11", [(x, 0.0) for x in xs])
     held = min_distance(np.zeros((1, 2)), memory.points_xy(), memory.inflation_m())[0]
     assert len(memory) >= 10
     assert float(held) <= gap_m + 0.25
