@@ -19,6 +19,7 @@ World frame local ENU, metres.
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass
 
@@ -216,6 +217,19 @@ _RING_COS = np.cos(_RING_ANGLES)
 _RING_SIN = np.sin(_RING_ANGLES)
 
 
+@functools.lru_cache(maxsize=8)
+def _rings(h_d_m: float) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """The rings of `fit_floor_z` for one H_d: each sample's offset from the centre, east
+    and north (80,) metres, and its sphere's rise sqrt(h_d_m^2 - r^2) (80,) metres (every
+    ring lies within h_d_m). Read-only; the same numbers `floor_z` works out."""
+    r = h_d_m * _RING_FRACTIONS
+    east, north = r * _RING_COS, r * _RING_SIN
+    rise = np.sqrt(np.maximum(h_d_m * h_d_m - r * r, 0.0))
+    for a in (east, north, rise):
+        a.setflags(write=False)
+    return east, north, rise
+
+
 def fit_floor_z(fit: GroundFit, x: float, y: float, h_d_m: float) -> float:
     """`floor_z` of the fitted surface about world (x, y): the lowest height there at least
     h_d_m from the fit sampled on 5 rings of 16 points out to 0.95 h_d_m, metres.
@@ -223,10 +237,11 @@ def fit_floor_z(fit: GroundFit, x: float, y: float, h_d_m: float) -> float:
     The surface sensors sample the ground along four lines; the nearest ground may lie
     between them (a mesa's corner between the forward and the side line, 1 m away, with
     H 0.2 m short of H_d while every stored point said the height was enough). The fit
-    spans the lines; it rounds a crease, so the points' own floor still holds at one."""
-    r = h_d_m * _RING_FRACTIONS
-    z = np.asarray(fit.heights(x + r * _RING_COS, y + r * _RING_SIN))
-    return floor_z(z, r * r, h_d_m)
+    spans the lines; it rounds a crease, so the points' own floor still holds at one.
+    The rings' offsets and rises depend on h_d_m alone (`_rings`)."""
+    east, north, rise = _rings(h_d_m)
+    z = fit.heights(x + east, y + north)
+    return float((z + rise).max())
 
 
 def floor_z(z: FloatArray, r2: FloatArray, h_d_m: float) -> float:
