@@ -156,7 +156,10 @@ _MIN_CHORD_M = 0.5
 """Shortest chord, horizontally or vertically, whose slope counts (`chord_steepness`): over
 shorter ones a few centimetres of range noise would read as a steep slope."""
 _LOCAL_CHORD_M = 2.5
-"""Longest horizontal chord whose slope is taken as the slope at its upper end."""
+"""Longest horizontal chord whose slope is taken as the slope at its upper end, and the
+farthest a flank is taken to reach below a remembered point (`Planner._steep_points`)."""
+_LEVEL_EPS = 1e-6
+"""A sensor whose boresight's up component (body frame) is at most this is not tilted up."""
 _GROUND_FIT_RADIUS_M = 3.0
 """Ground points within this horizontal radius of the middle of X_d(k-1) -> X_z shape the
 aim (`ground`), metres."""
@@ -310,6 +313,12 @@ class Planner:
         self._surface_items = tuple(sensors.surface_index.items())
         # Row of the sensor table -> its position among the obstacle sensors.
         self._obstacle_position = {int(r): k for k, r in enumerate(sensors.obstacle_index)}
+        # Obstacle sensors mounted tilted up (body frame): their points lie above flight
+        # height by design, where a long chord's reach down is taken (`_steep_points`).
+        self._tilted_up: list[bool] = [
+            r in self._obstacle_position and float(sensors.boresights_flu[r, 2]) > _LEVEL_EPS
+            for r in range(len(sensors))
+        ]
         # The rows of `_ground_points` when every surface sensor reads (the usual case).
         all_surface = sensors.surface_index
         self._ground_rows_all = np.array(
@@ -878,19 +887,26 @@ class Planner:
 
         Inflation: the solid below a steep point X_i slopes towards the vehicle at about
         theta, its steepest chord (a lower bound on the true slope, so the estimate errs
-        wide), when that chord is short enough (<= _LOCAL_CHORD_M) to say something about
-        the surface at X_i; a long chord (to a ground point far in front) does not, and
-        leaves the point as it was seen. Two things follow from theta:
+        wide). Two things follow from theta:
         - keeping D_min from an inclined flank takes D_min / sin(theta) horizontally, so
           that a point's inflated disc is D_min away where the flank is (the margin on top
-          is kept whole: the memory's measure is never the optimistic one);
+          is kept whole: the memory's measure is never the optimistic one). Only for a
+          short chord (<= _LOCAL_CHORD_M), which says something about the surface at X_i;
         - the vehicle passes at the height of the ground near X_i, z_g (the lower of the
           chord's other end and the group's ground point), plus H_d, where the flank reaches
-          (z_i - z_g - H_d) / tan(theta) nearer than X_i (never past the chord's other end).
-        e = max(0, D_min / sin(theta) - D_min) + min(h, max(0, z_i - z_g - H_d)
-        / tan(theta)), h the chord's length. The lower part of a flank is measured, not only
-        extrapolated: the surface sensors hit it as the vehicle comes near, and their steep
-        points enter the memory too.
+          (z_i - z_g - H_d) / tan(theta) nearer than X_i: the surface crosses that height
+          somewhere between X_i and the chord's other end, and the chord's line says where.
+          Never past the other end. On a long chord the reach is a guess (a wall seen by
+          a beam tilted up reads the same as a flank), taken only for sensors mounted
+          tilted up, whose points lie above flight height by design and whose flank below
+          no level sensor may see, and no farther than _LOCAL_CHORD_M (the most a short
+          chord can reach). A level sensor's point is above flight height only by the
+          vehicle's attitude, and its reading is the solid at flight height.
+        Short chord (h <= _LOCAL_CHORD_M): e = max(0, D_min / sin(theta) - D_min) + min(h,
+        max(0, z_i - z_g - H_d) / tan(theta)); long chord, sensor tilted up: e =
+        min(_LOCAL_CHORD_M, max(0, z_i - z_g - H_d) / tan(theta)); else e = 0 (as seen).
+        The lower part of a flank is measured, not only extrapolated: the surface sensors
+        hit it as the vehicle comes near, and their steep points enter the memory too.
         """
         params = self.params
         sensors = self.sensors
@@ -940,18 +956,24 @@ class Planner:
         ).tolist()
         inflation: list[float] = []
         slope: list[float] = []
+        d_min = params.d_min_m
         for r, p, q, h in zip(steep_rows, steep_points, lows, chords, strict=True):
-            if h <= _LOCAL_CHORD_M:  # (False for a chord without another end: NaN)
-                theta = phi_row[r]
-                k = self._obstacle_position.get(r)
-                z_g = q[2] if k is None else min(q[2], ground_points[k][2])
-                rise = max(p[2] - z_g - self._h_d, 0.0)
-                foot = min(h, rise / math.tan(theta))
-                slope.append(theta)
-            else:
-                theta, foot = 0.5 * math.pi, 0.0
+            if math.isnan(h):  # no chord's other end: as seen
+                inflation.append(0.0)
                 slope.append(math.nan)
-            inflation.append(max(params.d_min_m / math.sin(theta) - params.d_min_m, 0.0) + foot)
+                continue
+            theta = phi_row[r]
+            k = self._obstacle_position.get(r)
+            z_g = q[2] if k is None else min(q[2], ground_points[k][2])
+            rise = max(p[2] - z_g - self._h_d, 0.0)
+            if h <= _LOCAL_CHORD_M:
+                slope.append(theta)
+                foot = min(h, rise / math.tan(theta))
+                inflation.append(max(d_min / math.sin(theta) - d_min, 0.0) + foot)
+            else:
+                slope.append(math.nan)
+                tilted = self._tilted_up[r]
+                inflation.append(min(_LOCAL_CHORD_M, rise / math.tan(theta)) if tilted else 0.0)
         self._steep_rows = np.asarray(steep_rows, dtype=np.intp)
         return xyz, np.array(inflation), np.array(slope)
 
