@@ -112,6 +112,12 @@ def test_a_sloped_flank_keeps_the_inflation_its_slope_needs(layout: str, slope_d
     assert float(inflation[measured].min()) >= needed - 0.01
 
 
+@pytest.mark.xfail(
+    strict=True,
+    reason="open (issue: clearance in space): a point steep only through a long chord is "
+    "kept as seen; reaching down from it (docs/avoidance.md, 'Limits worth knowing') "
+    "halved paper-11's runs below D_min but cost fault flights their goal",
+)
 @pytest.mark.parametrize("slope_deg", [45.0, 55.0, 70.0])
 def test_a_flank_met_between_the_beams_reaches_down_from_its_high_points(
     slope_deg: float,
@@ -119,9 +125,10 @@ def test_a_flank_met_between_the_beams_reaches_down_from_its_high_points(
     """Paper-11: the vehicle flies straight past a mesa 50 degrees right of its heading,
     where neither the level forward beam nor the level side beam meets it; only the beam
     25 degrees up at 45 degrees meets the flank, 3-5 m above flight height, on chords too
-    long to give its slope. The memory holds the flank within 0.25 m of where it crosses
-    flight height (3 m away at the end), not where the beam met it (held 0.6-2.7 m
-    farther when such points were kept as seen)."""
+    long to give its slope. The memory should hold the flank within 0.25 m of where it
+    crosses flight height (3 m away at the end); it holds it where the beam met it,
+    0.6-2.7 m farther (5.70, 4.50, 3.64 m; a reach down along the chord, at most
+    2.5 m, gave 3.20, 2.38, 1.83 m)."""
     gap_m, top_r, height = 3.0, 3.0, 8.0
     flank_r = top_r + (height - 2.0) / math.tan(math.radians(slope_deg))  # at flight height
     bearing = math.radians(-50.0)
