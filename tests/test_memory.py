@@ -157,3 +157,47 @@ def test_changes_since_lead_from_each_earlier_version_to_the_points_now() -> Non
     assert len(history) > 10
     assert mem.changes_since(mem.version) == ([], [])
     assert mem.changes_since(mem.version + 1) is None
+
+
+def test_a_reach_is_bounded_by_rays_that_pass_below_its_height() -> None:
+    """A point 5 m up whose reach (2 m, down to z = 2 m) is on top of its inflation (0.3 m):
+    a ray above that height bounds nothing; one at it, passing 0.8 m from the point, bounds
+    the reach to 0.8 m; the inflation never goes below the one without the reach. The bound
+    stays with the cell: a new reading there keeps it (plus the distance moved)."""
+    mem = ObstacleMemory(0.25, 40.0, 64)
+    p = np.array([[5.1, 0.1, 5.0]])
+    mem.add(p, 1, np.array([0.3]), np.array([np.nan]), np.array([2.0]), np.array([2.0]))
+    assert mem.inflation_m().tolist() == [2.3]
+    east = np.array([[1.0, 0.0, 0.0]])
+    assert mem.bound_reach(np.array([0.0, 0.9, 2.5]), east, np.array([10.0]), 0.3) == 0
+    assert mem.bound_reach(np.array([0.0, 0.9, 2.2]), east, np.array([3.0]), 0.3) == 0  # short
+    assert mem.bound_reach(np.array([0.0, 0.9, 2.2]), east, np.array([10.0]), 0.3) == 1
+    assert np.allclose(mem.inflation_m(), [0.3 + 0.8])
+    down = np.array([[0.0, 0.0, -1.0]])  # straight down beside the point: 0.1 m from it
+    assert mem.bound_reach(np.array([5.1, 0.2, 6.0]), down, np.array([5.0]), 0.3) == 1
+    assert np.allclose(mem.inflation_m(), [0.3 + 0.1])
+    q = p + [0.1, 0.0, 0.0]
+    mem.add(q, 2, np.array([0.3]), np.array([np.nan]), np.array([2.0]), np.array([2.0]))
+    assert np.allclose(mem.inflation_m(), [0.3 + 0.2])
+
+
+def test_a_reach_takes_the_steepest_slope_measured_near_its_point() -> None:
+    """A point 4 m above its reach height reaching 2.5 m (a long chord's shallow slope):
+    a slope of 80 degrees measured by a short chord within slope_share_m (1.5 m) caps it at
+    4 / tan(80 degrees), whichever came first; one farther away does not."""
+    theta = np.radians(80.0)
+    for order in ("reach first", "slope first"):
+        mem = ObstacleMemory(0.25, 40.0, 64, slope_share_m=1.5)
+        pts = np.array([[5.1, 0.1, 6.0], [9.1, 0.1, 6.0]])
+        reach = (pts, 1, np.zeros(2), np.full(2, np.nan))
+        extra = (np.array([2.5, 2.5]), np.array([2.0, 2.0]))
+        slope = (np.array([[6.1, 0.6, 7.0]]), 1, np.array([0.01]), np.array([theta]))
+        if order == "reach first":
+            mem.add(*reach, *extra)
+            mem.add(*slope)
+        else:
+            mem.add(*slope)
+            mem.add(*reach, *extra)
+        infl = dict(zip(map(tuple, mem.points_xy().tolist()), mem.inflation_m().tolist()))
+        assert np.isclose(infl[(5.1, 0.1)], 4.0 / np.tan(theta))
+        assert infl[(9.1, 0.1)] == 2.5

@@ -85,8 +85,8 @@ def test_a_wall_passed_close_sheds_the_inflation_of_its_shallow_chords(
     kept, _ = _middle(_pass_by(WALL, "ring-8"))
     add = ObstacleMemory.add
 
-    def newest_wins(self, points, cycle, inflation_m=None, slope_rad=None):  # type: ignore[no-untyped-def]
-        return add(self, points, cycle, inflation_m)
+    def newest_wins(self, points, cycle, inflation_m=None, slope_rad=None, *reach):  # type: ignore[no-untyped-def]
+        return add(self, points, cycle, inflation_m, None, *reach)
 
     monkeypatch.setattr(ObstacleMemory, "add", newest_wins)
     newest, _ = _middle(_pass_by(WALL, "ring-8"))
@@ -112,12 +112,6 @@ def test_a_sloped_flank_keeps_the_inflation_its_slope_needs(layout: str, slope_d
     assert float(inflation[measured].min()) >= needed - 0.01
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason="open (issue: clearance in space): a point steep only through a long chord is "
-    "kept as seen; reaching down from it (docs/avoidance.md, 'Limits worth knowing') "
-    "halved paper-11's runs below D_min but cost fault flights their goal",
-)
 @pytest.mark.parametrize("slope_deg", [45.0, 55.0, 70.0])
 def test_a_flank_met_between_the_beams_reaches_down_from_its_high_points(
     slope_deg: float,
@@ -125,10 +119,10 @@ def test_a_flank_met_between_the_beams_reaches_down_from_its_high_points(
     """Paper-11: the vehicle flies straight past a mesa 50 degrees right of its heading,
     where neither the level forward beam nor the level side beam meets it; only the beam
     25 degrees up at 45 degrees meets the flank, 3-5 m above flight height, on chords too
-    long to give its slope. The memory should hold the flank within 0.25 m of where it
-    crosses flight height (3 m away at the end); it holds it where the beam met it,
-    0.6-2.7 m farther (5.70, 4.50, 3.64 m; a reach down along the chord, at most
-    2.5 m, gave 3.20, 2.38, 1.83 m)."""
+    long to give its slope. The memory holds the flank within 0.25 m of where it crosses
+    flight height (3 m away at the end): 3.20, 2.38, 2.00 m, a reach down along the
+    chord (at most 2.5 m) bounded by the rays that passed the flank at flight height
+    (without the reach, where the beam met it: 5.70, 4.50, 3.64 m)."""
     gap_m, top_r, height = 3.0, 3.0, 8.0
     flank_r = top_r + (height - 2.0) / math.tan(math.radians(slope_deg))  # at flight height
     bearing = math.radians(-50.0)
@@ -145,3 +139,45 @@ def test_a_flank_met_between_the_beams_reaches_down_from_its_high_points(
     held = min_distance(np.zeros((1, 2)), memory.points_xy(), memory.inflation_m())[0]
     assert len(memory) >= 10
     assert float(held) <= gap_m + 0.25
+
+
+@pytest.mark.parametrize("slope_deg", [45.0, 50.0, 55.0, 70.0])
+def test_the_reach_of_a_flank_is_not_bounded_below_where_the_flank_is(slope_deg: float) -> None:
+    """The flank of the test above, met only by the beam tilted up: the rays that pass it
+    at flight height bound each point's reach (`ObstacleMemory.bound_reach`), never below
+    the true distance from the point to where the flank crosses flight height (at most
+    the reach's 2.5 m cap)."""
+    gap_m, top_r, height = 3.0, 3.0, 8.0
+    flank_r = top_r + (height - 2.0) / math.tan(math.radians(slope_deg))
+    bearing = math.radians(-50.0)
+    centre = np.array([math.cos(bearing), math.sin(bearing)]) * (flank_r + gap_m)
+    mesa = {
+        "type": "mesa",
+        "center": centre.tolist(),
+        "radius_m": top_r,
+        "height_m": height,
+        "side_slope_deg": slope_deg,
+    }
+    xs = np.arange(-12.0, 0.001, 0.05).tolist()
+    memory = _memory_after(mesa, "paper-11", [(x, 0.0) for x in xs])
+    xy = memory.points_xy()
+    truth = np.minimum(2.5, flank_r - np.hypot(*(xy - centre).T))
+    assert float((memory.inflation_m() - truth).min()) >= 0.0
+
+
+@pytest.mark.parametrize("gap_m", [2.5, 3.5])
+def test_a_pillar_seen_by_the_beams_tilted_up_is_not_widened(gap_m: float) -> None:
+    """Paper-11 flies straight past a pillar 8 m tall (1 m radius) gap_m to its left. The
+    beams tilted up meet it high on long chords, which alone would widen it by up to 2.5 m
+    (the reach); the forward beams measure its face steep on short chords, and the level
+    and surface beams pass beside it at flight height: the reach each point keeps is at
+    most 0.3 m. (Inflation from short chords is the same as without the reach.)"""
+    centre = (10.0, gap_m + 1.0)
+    pillar = {"type": "cylinder", "center": list(centre), "radius_m": 1.0, "height_m": 8.0}
+    xs = np.arange(0.0, 20.0, 0.05).tolist()
+    memory = _memory_after(pillar, "paper-11", [(x, 0.0) for x in xs])
+    slots = np.fromiter(memory._cells.values(), dtype=np.intp, count=len(memory))
+    on = np.hypot(*(memory.points_xy() - centre).T) < 1.3
+    assert on.sum() >= 10
+    reach = memory.inflation_m()[on] - memory._base[slots][on]
+    assert float(reach.max()) <= 0.3

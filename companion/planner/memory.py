@@ -14,6 +14,17 @@ shallower takes the inflation that came with the steepest. A reading without a m
 slope (no short chord) is taken as it is (its inflation, usually 0), as before; the steepest
 slope stays for the next measured one.
 
+A point may also carry a reach (metres, >= 0, on top of that inflation): how far a flank
+below it is guessed to come nearer at flight height when no short chord measured its slope
+(`Planner._steep_points`), with the height it comes down to. The guess is bounded by what
+rays see free over time (`bound_reach`): a ray that passes at or below that height
+horizontally d from the point shows the solid there does not reach d (a heightfield is free
+above any free point), so the reach kept is at most the least such d seen. The bound stays
+with the cell while it lives; a re-observed point that moved within its cell takes the
+bound plus the distance moved (the free place seen is at most that much farther). A point
+within `slope_share_m` of a cell whose slope was measured (a short chord) reaches down at
+that slope where it is the steeper one (`_share_slopes`).
+
 Storage: the points live in rows ("slots") of one preallocated array; a dict maps each grid
 cell to its slot and keeps the cells oldest first. Adding or replacing a point writes one
 row, and the (k, 2) array of points is gathered from the slots in one step when asked for.
@@ -36,6 +47,9 @@ import numpy.typing as npt
 from companion.planner.types import BoolArray, FloatArray
 
 _INITIAL_SLOTS = 64
+_REACH_STEP_M = 0.05
+"""`bound_reach` lowers a stored inflation only by at least this much (or to no reach at
+all), so that rays sweeping past a point do not change the memory every cycle, metres."""
 _LOG_ENTRIES = 512
 """The change log keeps at most about this many entries (one per slot touched by a change),
 at least half as many; a caller further behind is told to derive afresh (`changes_since`
@@ -56,10 +70,15 @@ class MemoryChanges(NamedTuple):
 
 
 class ObstacleMemory:
-    def __init__(self, cell_m: float, radius_m: float, max_points: int) -> None:
-        if cell_m <= 0 or radius_m <= 0 or max_points < 1:
-            raise ValueError("cell_m and radius_m must be > 0 and max_points >= 1")
+    def __init__(
+        self, cell_m: float, radius_m: float, max_points: int, slope_share_m: float = 0.0
+    ) -> None:
+        if cell_m <= 0 or radius_m <= 0 or max_points < 1 or not slope_share_m >= 0.0:
+            raise ValueError(
+                "cell_m and radius_m must be > 0, max_points >= 1 and slope_share_m >= 0"
+            )
         self.cell_m = cell_m
+        self.slope_share_m = slope_share_m
         self.radius_m = radius_m
         self.max_points = max_points
         self.version = 0
@@ -70,6 +89,12 @@ class ObstacleMemory:
         self._inflation = np.zeros(_INITIAL_SLOTS)
         self._slope = np.full(_INITIAL_SLOTS, np.nan)  # the steepest slope measured, rad
         self._slope_inflation = np.zeros(_INITIAL_SLOTS)  # the inflation that came with it
+        # The reach (`bound_reach`): the inflation without it, the reach as measured, the
+        # height it comes down to (world z) and the bound seen free (inf: none), metres.
+        self._base = np.zeros(_INITIAL_SLOTS)
+        self._reach = np.zeros(_INITIAL_SLOTS)
+        self._reach_z = np.zeros(_INITIAL_SLOTS)
+        self._bound = np.full(_INITIAL_SLOTS, np.inf)
         self._free: list[int] = list(range(_INITIAL_SLOTS - 1, -1, -1))
         self._xy: FloatArray | None = None
         self._infl: FloatArray | None = None
@@ -101,6 +126,10 @@ class ObstacleMemory:
             self._inflation = np.concatenate([self._inflation, np.zeros(old)])
             self._slope = np.concatenate([self._slope, np.full(old, np.nan)])
             self._slope_inflation = np.concatenate([self._slope_inflation, np.zeros(old)])
+            self._base = np.concatenate([self._base, np.zeros(old)])
+            self._reach = np.concatenate([self._reach, np.zeros(old)])
+            self._reach_z = np.concatenate([self._reach_z, np.zeros(old)])
+            self._bound = np.concatenate([self._bound, np.full(old, np.inf)])
             self._free = list(range(2 * old - 1, old - 1, -1))
         return self._free.pop()
 
@@ -110,11 +139,15 @@ class ObstacleMemory:
         cycle: int,
         inflation_m: FloatArray | None = None,
         slope_rad: FloatArray | None = None,
+        reach_m: FloatArray | None = None,
+        reach_z_m: FloatArray | None = None,
     ) -> int:
         """Store points (k, 3) with their inflation (k,) metres (default 0) and the slope
         (k,) radians it comes from (default NaN: none measured); returns how many cells
         were new. A measured slope shallower than the steepest the cell has had brings
-        that one's inflation instead of its own."""
+        that one's inflation instead of its own. reach_m (k,) metres (default 0) is added
+        to the inflation as far as the cell's bound allows (`bound_reach`); reach_z_m (k,)
+        the height (world z, metres) it comes down to."""
         new = 0
         inv = 1.0 / self.cell_m
         cells = self._cells
@@ -130,9 +163,17 @@ class ObstacleMemory:
             if slope_rad is None
             else np.asarray(slope_rad, dtype=np.float64).reshape(-1).tolist()
         )
+        reaches = [0.0] * k if reach_m is None else np.asarray(reach_m, dtype=np.float64).tolist()
+        reach_zs = (
+            [0.0] * k if reach_z_m is None else np.asarray(reach_z_m, dtype=np.float64).tolist()
+        )
         version = self.version
         xyz = self._xyz
-        for (x, y, z), e, theta in zip(pts.tolist(), inflation, slopes, strict=True):
+        bound = self._bound
+        shared = False  # a reach or a measured slope came: `_share_slopes`
+        for (x, y, z), e, theta, reach, reach_z in zip(
+            pts.tolist(), inflation, slopes, reaches, reach_zs, strict=True
+        ):
             if not (math.isfinite(x) and math.isfinite(y) and math.isfinite(z)):
                 continue
             e = e if math.isfinite(e) and e > 0.0 else 0.0
@@ -141,13 +182,15 @@ class ObstacleMemory:
             if slot is None:
                 new += 1
                 slot = self._slot()
-                xyz = self._xyz  # (a new slot may have grown the arrays)
+                xyz, bound = self._xyz, self._bound  # (a new slot may have grown the arrays)
                 self._slope[slot] = math.nan
+                bound[slot] = math.inf
                 self._log(version, slot, math.nan, math.nan, math.nan)
             else:
-                self._log(
-                    version, slot, xyz.item(slot, 0), xyz.item(slot, 1), self._inflation.item(slot)
-                )
+                x0, y0 = xyz.item(slot, 0), xyz.item(slot, 1)
+                self._log(version, slot, x0, y0, self._inflation.item(slot))
+                if bound.item(slot) < math.inf:
+                    bound[slot] += math.hypot(x - x0, y - y0)
             cells[key] = slot
             xyz[slot] = (x, y, z)
             self._cycle[slot] = cycle
@@ -157,11 +200,18 @@ class ObstacleMemory:
                     self._slope[slot] = theta
                     self._slope_inflation[slot] = e
                 e = float(self._slope_inflation[slot])
-            self._inflation[slot] = e
+            reach = reach if math.isfinite(reach) and reach > 0.0 else 0.0
+            self._base[slot] = e
+            self._reach_z[slot] = reach_z
+            self._reach[slot] = reach
+            self._inflation[slot] = e + min(reach, bound.item(slot))
+            shared = shared or reach > 0.0 or math.isfinite(theta)
             check = self._far_check
             if check is not None:
                 cx, cy, slack = check
                 self._far_check = (cx, cy, min(slack, self.radius_m - math.hypot(x - cx, y - cy)))
+        if shared:
+            self._share_slopes(version)
         while len(cells) > self.max_points:
             self._drop_slots([cells.pop(next(iter(cells)))])
             new += 1
@@ -170,6 +220,44 @@ class ObstacleMemory:
         if len(points_enu):
             self._changed()
         return new
+
+    def _share_slopes(self, version: int) -> None:
+        """Cap each point's reach at its rise over the tangent of the steepest slope
+        measured (a short chord's) within slope_share_m of it horizontally: a lower bound on
+        the surface's slope near it, as the long chord's is, so that a solid measured
+        steep by a short chord (a wall, a pillar) is not taken to reach down at a long
+        chord's shallower slope. Lowered inflations are logged from `version`."""
+        reach = self._reach
+        if not (reach > 0.0).any():
+            return
+        slots = self._cell_slots()
+        theta = self._slope[slots]
+        steep = slots[theta > 0.0]  # (False for NaN: none measured)
+        aims = slots[reach[slots] > 0.0]
+        if len(steep) == 0 or len(aims) == 0:
+            return
+        d = self._xyz[aims, None, :2] - self._xyz[None, steep, :2]
+        near = (d * d).sum(axis=2) <= self.slope_share_m**2
+        steepest = np.where(near, self._slope[steep][None, :], 0.0).max(axis=1)
+        has = steepest > 0.0
+        if not has.any():
+            return
+        aims, steepest = aims[has], steepest[has]
+        rise = np.maximum(self._xyz[aims, 2] - self._reach_z[aims], 0.0)
+        capped = np.minimum(reach[aims], rise / np.tan(steepest))
+        lower = capped < reach[aims]
+        for slot, r in zip(aims[lower].tolist(), capped[lower].tolist(), strict=True):
+            reach[slot] = r
+            e = self._base.item(slot) + min(r, self._bound.item(slot))
+            if e < self._inflation.item(slot):
+                self._log(
+                    version,
+                    slot,
+                    self._xyz.item(slot, 0),
+                    self._xyz.item(slot, 1),
+                    self._inflation.item(slot),
+                )
+                self._inflation[slot] = e
 
     def _log(self, version: int, slot: int, x: float, y: float, inflation_m: float) -> None:
         """A change log entry: `slot` changes from version `version`, from (x, y) with
@@ -192,6 +280,7 @@ class ObstacleMemory:
         self._log_y.extend(self._xyz[idx, 1].tolist())
         self._log_inflation.extend(self._inflation[idx].tolist())
         self._xyz[idx] = np.inf
+        self._reach[idx] = 0.0
         self._free.extend(slots)
 
     def _changed(self) -> None:
@@ -275,6 +364,73 @@ class ObstacleMemory:
         self._changed()
         self.generation += 1
         return int(far.sum())
+
+    def bound_reach(
+        self,
+        origin_enu: FloatArray,
+        directions_enu: FloatArray,
+        free_m: FloatArray,
+        tolerance_m: float,
+    ) -> int:
+        """Bound the points' reach by free space: ray i starts at origin_enu (3,) along the
+        unit direction directions_enu[i] (world ENU) and saw nothing for its first free_m[i]
+        metres. The part of it at most tolerance_m above a point's reach height passes
+        horizontally d from the point somewhere: the solid below the point does not reach
+        d at that height, and the point's bound becomes at most d. Its inflation becomes
+        the inflation without the reach, plus the reach up to the bound (lowered in steps
+        of at least _REACH_STEP_M). Returns how many inflations were lowered."""
+        reach = self._reach
+        if len(free_m) == 0 or not (reach > 0.0).any():
+            return 0
+        slots = self._cell_slots()
+        slots = slots[np.minimum(reach[slots], self._bound[slots]) > 0.0]
+        if len(slots) == 0:
+            return 0
+        o = np.asarray(origin_enu, dtype=np.float64).reshape(3)
+        dirs = np.asarray(directions_enu, dtype=np.float64).reshape(-1, 3)
+        length = np.asarray(free_m, dtype=np.float64).reshape(1, -1)
+        # Each ray's stretch [lo, hi] (metres along it) at most the ceiling high, per point.
+        ceiling = (self._reach_z[slots] + tolerance_m - o[2])[:, None]  # (k, 1)
+        dz = dirs[:, 2][None, :]  # (1, n)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            cross = ceiling / dz
+        rising, falling = dz > 1e-9, dz < -1e-9
+        level_ok = ceiling >= 0.0
+        hi = np.where(rising, np.minimum(length, cross), np.where(falling | level_ok, length, -1.0))
+        lo = np.where(falling, np.maximum(0.0, cross), 0.0)
+        seen = (lo <= hi) & (hi >= 0.0)
+        # Horizontal distance from each point to each stretch.
+        rel = self._xyz[slots, :2] - o[:2]  # (k, 2)
+        dxy = dirs[:, :2]  # (n, 2)
+        dxy_sq = (dxy * dxy).sum(axis=1)[None, :]  # (1, n)
+        along = np.clip((rel @ dxy.T) / np.maximum(dxy_sq, 1e-12), lo, np.maximum(lo, hi))
+        ex = rel[:, 0:1] - along * dxy[None, :, 0]
+        ey = rel[:, 1:2] - along * dxy[None, :, 1]
+        d = np.where(seen, np.sqrt(ex * ex + ey * ey), np.inf).min(axis=1)
+        tighter = d < self._bound[slots]
+        if not tighter.any():
+            return 0
+        slots, d = slots[tighter], d[tighter]
+        self._bound[slots] = d
+        now = self._inflation[slots]
+        new = self._base[slots] + np.minimum(self._reach[slots], d)
+        lower = (now - new >= _REACH_STEP_M) | (
+            (new - self._base[slots] < _REACH_STEP_M) & (now > new)
+        )
+        if not lower.any():
+            return 0
+        version = self.version
+        for slot, e in zip(slots[lower].tolist(), new[lower].tolist(), strict=True):
+            self._log(
+                version,
+                slot,
+                self._xyz.item(slot, 0),
+                self._xyz.item(slot, 1),
+                self._inflation.item(slot),
+            )
+            self._inflation[slot] = e
+        self._changed()
+        return int(lower.sum())
 
     def carve_sectors(
         self,

@@ -120,6 +120,31 @@ _NO_POINTS = np.empty((0, 3))
 _NO_INFLATION = np.empty(0)
 _NO_POINTS.setflags(write=False)
 _NO_INFLATION.setflags(write=False)
+
+
+class _SteepColumns(NamedTuple):
+    """Per steep point of a cycle (`Planner._steep_points`), each (k,): its inflation,
+    metres; the slope it comes from, radians (NaN: none measured); its reach on a long
+    chord, metres, and the height it comes down to, world z metres (NaN: no reach); in
+    the order of `ObstacleMemory.add`'s arguments."""
+
+    inflation: FloatArray
+    slope: FloatArray
+    reach: FloatArray
+    reach_z: FloatArray
+
+
+_NO_COLUMNS = _SteepColumns(_NO_INFLATION, _NO_INFLATION, _NO_INFLATION, _NO_INFLATION)
+_SLOPE_SHARE_M = 1.5
+"""A long chord's reach is taken at most at the steepest slope a short chord measured within
+this of its point horizontally, metres (`ObstacleMemory.slope_share_m`)."""
+_REACH_FREE_SHORT_M = 0.1
+"""A ray bounds a remembered point's reach with its free part only up to this much short of
+its range (range noise), metres (`Planner._bound_reach`)."""
+_REACH_HEIGHT_TOLERANCE_M = 0.3
+"""A ray's part up to this much above a point's reach height bounds its reach, metres: the
+vehicle's height wanders about flight height, and above it a flank's footprint is smaller
+by this over tan(theta) at most."""
 _CARVE_SHORT_M = 0.5
 """A ray clears remembered points only up to this much short of its range, metres."""
 _CARVE_TOLERANCE_M = 0.25
@@ -329,7 +354,7 @@ class Planner:
             dtype=np.intp,
         )
         self._memory = ObstacleMemory(
-            params.memory_cell_m, params.memory_radius_m, params.memory_max_points
+            params.memory_cell_m, params.memory_radius_m, params.memory_max_points, _SLOPE_SHARE_M
         )
         self._path: Path = route
         self._samples: _PathSamples | None = None
@@ -512,12 +537,12 @@ class Planner:
         detected = valid[obs]
         ground = self._ground_points(points, surface, state)
         phi_star = steepness(points[obs], ground, detected)
-        steep_xyz, steep_inflation, steep_slope = self._steep_points(
+        steep_xyz, steep_columns = self._steep_points(
             points, pts, valid, valid_list, detected, ground, phi_star
         )
         if self._sector_rows.size and len(steep_xyz):
-            steep_xyz, steep_inflation, steep_slope = self._sector_arcs(
-                state.position_enu, rot, ranges, valid, steep_xyz, steep_inflation, steep_slope
+            steep_xyz, steep_columns = self._sector_arcs(
+                state.position_enu, rot, ranges, valid, steep_xyz, steep_columns
             )
         phi_d = 0.0  # no ground in view: hold the height
         if x_z is not None:
@@ -529,7 +554,8 @@ class Planner:
         decision = decide_rows(phi_star.tolist(), self._threshold_list)
         self._carve(state, rot, ranges, valid)
         if len(steep_xyz):
-            self._memory.add(steep_xyz, self._cycle, steep_inflation, steep_slope)
+            self._memory.add(steep_xyz, self._cycle, *steep_columns)
+        self._bound_reach(state, rot, ranges, valid)
         self._memory.forget_far(state.position_enu[:2])
         ranges_list: list[float] = ranges.tolist()
         nearest = min(
@@ -879,11 +905,13 @@ class Planner:
         detected: BoolArray,
         ground: FloatArray,
         phi_star: FloatArray,
-    ) -> tuple[FloatArray, FloatArray, FloatArray]:
-        """The points measured this cycle that are too steep to climb, (k, 3), the
-        inflation of each, (k,) metres, and the slope theta it comes from, (k,) radians
-        (NaN where no short chord measured it). phi_star (eq. 6, per obstacle sensor) is raised in
-        place to the steepest chord through each obstacle reading.
+    ) -> tuple[FloatArray, _SteepColumns]:
+        """The points measured this cycle that are too steep to climb, (k, 3), and per
+        point (`_SteepColumns`, each (k,)): the inflation, metres; the slope theta it comes
+        from, radians (NaN where no short chord measured it); the reach on a long chord,
+        metres, and the height it comes down to (world z, metres). phi_star (eq. 6, per
+        obstacle sensor) is raised in place to the steepest chord through each obstacle
+        reading.
 
         Inflation: the solid below a steep point X_i slopes towards the vehicle at about
         theta, its steepest chord (a lower bound on the true slope, so the estimate errs
@@ -901,10 +929,15 @@ class Planner:
           tilted up, whose points lie above flight height by design and whose flank below
           no level sensor may see, and no farther than _LOCAL_CHORD_M (the most a short
           chord can reach). A level sensor's point is above flight height only by the
-          vehicle's attitude, and its reading is the solid at flight height.
+          vehicle's attitude, and its reading is the solid at flight height. That reach is
+          kept apart from the inflation (as the reach, down to z_g + H_d): the memory
+          bounds it by what rays see free at that height over time
+          (`ObstacleMemory.bound_reach`, `_bound_reach`), so that a wall or a pillar is
+          not widened once a ray has passed beside it.
         Short chord (h <= _LOCAL_CHORD_M): e = max(0, D_min / sin(theta) - D_min) + min(h,
-        max(0, z_i - z_g - H_d) / tan(theta)); long chord, sensor tilted up: e =
-        min(_LOCAL_CHORD_M, max(0, z_i - z_g - H_d) / tan(theta)); else e = 0 (as seen).
+        max(0, z_i - z_g - H_d) / tan(theta)), no reach; long chord, sensor tilted up: e =
+        0, reach min(_LOCAL_CHORD_M, max(0, z_i - z_g - H_d) / tan(theta)); else e = 0 and
+        no reach (as seen).
         The lower part of a flank is measured, not only extrapolated: the surface sensors
         hit it as the vehicle comes near, and their steep points enter the memory too.
         """
@@ -932,7 +965,7 @@ class Planner:
         steep_rows = [r for r in rows if phi_row[r] > threshold[r]]
         phi_star[:] = raised
         if not steep_rows:  # the usual cycle: nothing to remember
-            return _NO_POINTS, _NO_INFLATION, _NO_INFLATION
+            return _NO_POINTS, _NO_COLUMNS
         # Where eq. (6)'s own chord is the steeper one, its other end is the ground point.
         eq6 = [ok and a >= b for ok, a, b in zip(detected.tolist(), star, chord_obs, strict=True)]
         # The rest per steep row in plain Python (there are a few): the chord's other end
@@ -954,28 +987,29 @@ class Planner:
             [p[0] - q[0] for p, q in zip(steep_points, lows, strict=True)],
             [p[1] - q[1] for p, q in zip(steep_points, lows, strict=True)],
         ).tolist()
-        inflation: list[float] = []
-        slope: list[float] = []
+        n = len(steep_rows)
+        inflation, slope = [0.0] * n, [math.nan] * n
+        reach, reach_z = [0.0] * n, [math.nan] * n
         d_min = params.d_min_m
-        for r, p, q, h in zip(steep_rows, steep_points, lows, chords, strict=True):
+        for j, (r, p, q, h) in enumerate(zip(steep_rows, steep_points, lows, chords, strict=True)):
             if math.isnan(h):  # no chord's other end: as seen
-                inflation.append(0.0)
-                slope.append(math.nan)
                 continue
             theta = phi_row[r]
             k = self._obstacle_position.get(r)
             z_g = q[2] if k is None else min(q[2], ground_points[k][2])
             rise = max(p[2] - z_g - self._h_d, 0.0)
             if h <= _LOCAL_CHORD_M:
-                slope.append(theta)
+                slope[j] = theta
                 foot = min(h, rise / math.tan(theta))
-                inflation.append(max(d_min / math.sin(theta) - d_min, 0.0) + foot)
-            else:
-                slope.append(math.nan)
-                tilted = self._tilted_up[r]
-                inflation.append(min(_LOCAL_CHORD_M, rise / math.tan(theta)) if tilted else 0.0)
+                inflation[j] = max(d_min / math.sin(theta) - d_min, 0.0) + foot
+            elif self._tilted_up[r]:
+                reach[j] = min(_LOCAL_CHORD_M, rise / math.tan(theta))
+                reach_z[j] = z_g + self._h_d
         self._steep_rows = np.asarray(steep_rows, dtype=np.intp)
-        return xyz, np.array(inflation), np.array(slope)
+        columns = _SteepColumns(
+            np.array(inflation), np.array(slope), np.array(reach), np.array(reach_z)
+        )
+        return xyz, columns
 
     def _sector_arcs(
         self,
@@ -984,19 +1018,18 @@ class Planner:
         ranges: FloatArray,
         valid: BoolArray,
         xyz: FloatArray,
-        inflation: FloatArray,
-        slope: FloatArray,
-    ) -> tuple[FloatArray, FloatArray, FloatArray]:
+        columns: _SteepColumns,
+    ) -> tuple[FloatArray, _SteepColumns]:
         """A steep reading of a sensor with a field of view (a proximity sector) says that
         the nearest object in the sector is at that range, not where on the arc: the whole
         arc across the sector, points _SECTOR_ARC_SPACING_M apart, enters the memory with
-        the boresight point's inflation and slope. (k, 3) points, (k,) inflations and (k,)
-        slopes, the arcs added."""
+        the boresight point's inflation, slope and reach (`_SteepColumns`). (k, 3) points
+        and their columns, the arcs added."""
         rows = self._steep_rows
         fov = self.sensors.fov_rad[rows]
         sector = fov > 0.0
         if not sector.any():
-            return xyz, inflation, slope
+            return xyz, columns
         arcs: list[FloatArray] = []
         which = np.flatnonzero(sector)
         for k in which:
@@ -1016,12 +1049,13 @@ class Planner:
             for j, part in enumerate(np.split(seen, ends)):
                 if part.any() and not part.all():
                     arcs[j] = arcs[j][~part]
-        extra_xyz, extra_inflation, extra_slope = [xyz], [inflation], [slope]
+        extra_xyz = [xyz]
+        extra: list[list[FloatArray]] = [[c] for c in columns]
         for k, arc in zip(which, arcs, strict=True):
             extra_xyz.append(arc)
-            extra_inflation.append(np.full(len(arc), inflation[k]))
-            extra_slope.append(np.full(len(arc), slope[k]))
-        return np.vstack(extra_xyz), np.concatenate(extra_inflation), np.concatenate(extra_slope)
+            for parts, c in zip(extra, columns, strict=True):
+                parts.append(np.full(len(arc), c[k]))
+        return np.vstack(extra_xyz), _SteepColumns(*(np.concatenate(p) for p in extra))
 
     def _path_heading(self) -> float:
         return self._path.segments[self._segment].heading(self._t)
@@ -1559,6 +1593,24 @@ class Planner:
             # That carves across the sector's width (a reading's arc, entered from farther
             # away, is over-wide once seen from nearer).
             self._memory.carve_sectors(*fan_args, _CARVE_TOLERANCE_M, _CARVE_SUPPORT_M)
+
+    def _bound_reach(
+        self, state: VehicleState, rot: FloatArray, ranges: FloatArray, valid: BoolArray
+    ) -> None:
+        """Bound the remembered points' reach on long chords by this cycle's rays
+        (`ObstacleMemory.bound_reach`): each ray, obstacle or surface, saw nothing up to
+        _REACH_FREE_SHORT_M short of what it measured (range noise), or up to its max range
+        when it saw nothing; readings of 0, NaN or below min range say nothing. In motion
+        too: a ray passing beside a point is the evidence here (it drops nothing)."""
+        sensors = self.sensors
+        r = np.asarray(ranges, dtype=np.float64)
+        nothing = np.isfinite(r) & (r >= sensors.max_range_m)
+        free = np.where(valid, r - _REACH_FREE_SHORT_M, np.where(nothing, sensors.max_range_m, 0.0))
+        use = (valid | nothing) & (free > 0.0)
+        if not use.any():
+            return
+        dirs = sensors.boresights_flu[use] @ rot.T
+        self._memory.bound_reach(state.position_enu, dirs, free[use], _REACH_HEIGHT_TOLERANCE_M)
 
     def _vehicle_ahead_m(self, position_enu: FloatArray, heading: float) -> float:
         """How far the vehicle is ahead of last cycle's X_d along the path's heading there
