@@ -166,8 +166,9 @@ def test_a_reach_is_bounded_by_rays_that_pass_below_its_height() -> None:
     stays with the cell: a new reading there keeps it (plus the distance moved)."""
     mem = ObstacleMemory(0.25, 40.0, 64)
     p = np.array([[5.1, 0.1, 5.0]])
-    mem.add(p, 1, np.array([0.3]), np.array([np.nan]), np.array([2.0]), np.array([2.0]))
-    assert mem.inflation_m().tolist() == [2.3]
+    for cycle in (1, 2):  # (a reach is taken from the second cycle that sees one there)
+        mem.add(p, cycle, np.array([0.3]), np.array([np.nan]), np.array([2.0]), np.array([2.0]))
+        assert mem.inflation_m().tolist() == [0.3 if cycle == 1 else 2.3]
     east = np.array([[1.0, 0.0, 0.0]])
     assert mem.bound_reach(np.array([0.0, 0.9, 2.5]), east, np.array([10.0]), 0.3) == 0
     assert mem.bound_reach(np.array([0.0, 0.9, 2.2]), east, np.array([3.0]), 0.3) == 0  # short
@@ -177,7 +178,7 @@ def test_a_reach_is_bounded_by_rays_that_pass_below_its_height() -> None:
     assert mem.bound_reach(np.array([5.1, 0.2, 6.0]), down, np.array([5.0]), 0.3) == 1
     assert np.allclose(mem.inflation_m(), [0.3 + 0.1])
     q = p + [0.1, 0.0, 0.0]
-    mem.add(q, 2, np.array([0.3]), np.array([np.nan]), np.array([2.0]), np.array([2.0]))
+    mem.add(q, 3, np.array([0.3]), np.array([np.nan]), np.array([2.0]), np.array([2.0]))
     assert np.allclose(mem.inflation_m(), [0.3 + 0.2])
 
 
@@ -189,15 +190,32 @@ def test_a_reach_takes_the_steepest_slope_measured_near_its_point() -> None:
     for order in ("reach first", "slope first"):
         mem = ObstacleMemory(0.25, 40.0, 64, slope_share_m=1.5)
         pts = np.array([[5.1, 0.1, 6.0], [9.1, 0.1, 6.0]])
-        reach = (pts, 1, np.zeros(2), np.full(2, np.nan))
-        extra = (np.array([2.5, 2.5]), np.array([2.0, 2.0]))
-        slope = (np.array([[6.1, 0.6, 7.0]]), 1, np.array([0.01]), np.array([theta]))
+        extra = (np.zeros(2), np.full(2, np.nan), np.array([2.5, 2.5]), np.array([2.0, 2.0]))
+        slope = (np.array([[6.1, 0.6, 7.0]]), 3, np.array([0.01]), np.array([theta]))
+        if order == "slope first":
+            mem.add(*slope)
+        for cycle in (1, 2):
+            mem.add(pts, cycle, *extra)
         if order == "reach first":
-            mem.add(*reach, *extra)
             mem.add(*slope)
-        else:
-            mem.add(*slope)
-            mem.add(*reach, *extra)
         infl = dict(zip(map(tuple, mem.points_xy().tolist()), mem.inflation_m().tolist()))
         assert np.isclose(infl[(5.1, 0.1)], 4.0 / np.tan(theta))
         assert infl[(9.1, 0.1)] == 2.5
+
+
+def test_a_reach_waits_for_a_second_cycle_and_takes_the_chords_between_points() -> None:
+    """A reach seen in one cycle only widens nothing; the next cycle's reading in the cell
+    next to it takes both. Two such points 1.5 m apart in height and 0.3 m apart across (a
+    wall met by a beam tilted up at two heights) are a chord of 79 degrees: each point
+    reaches its rise (4 m, 2.5 m) over the tangent of its steepest chord, not the long
+    chord's 2.5 m."""
+    mem = ObstacleMemory(0.25, 40.0, 64, slope_share_m=2.5, min_chord_m=0.5)
+    extra = (np.zeros(1), np.full(1, np.nan), np.array([2.5]), np.array([2.0]))
+    mem.add(np.array([[5.1, 0.1, 6.0]]), 1, *extra)
+    assert mem.inflation_m().tolist() == [0.0]
+    mem.add(np.array([[5.1, 0.4, 6.0]]), 2, *extra)  # the next cell, the same height
+    assert mem.inflation_m().tolist() == [2.5, 2.5]
+    mem.add(np.array([[5.4, 0.1, 4.5]]), 3, *extra)  # 1.5 m lower, 0.3 m across
+    steep = 0.3 / 1.5  # 1 / tan of the chord from the first point, the steepest
+    across = np.hypot(0.3, 0.3) / 1.5  # from the second
+    assert np.allclose(mem.inflation_m(), [4.0 * steep, 4.0 * across, 2.5 * steep])

@@ -21,7 +21,9 @@ rays see free over time (`bound_reach`): a ray that passes at or below that heig
 horizontally d from the point shows the solid there does not reach d (a heightfield is free
 above any free point), so the reach kept is at most the least such d seen. The bound stays
 with the cell while it lives; a re-observed point that moved within its cell takes the
-bound plus the distance moved (the free place seen is at most that much farther). A point
+bound plus the distance moved (the free place seen is at most that much farther). A cell
+takes a reach only once it or a cell next to it had one in an earlier cycle too
+(`_confirmed`); till then the reach waits. A point
 within `slope_share_m` of a cell whose slope was measured (a short chord) reaches down at
 that slope where it is the steeper one (`_share_slopes`).
 
@@ -71,7 +73,12 @@ class MemoryChanges(NamedTuple):
 
 class ObstacleMemory:
     def __init__(
-        self, cell_m: float, radius_m: float, max_points: int, slope_share_m: float = 0.0
+        self,
+        cell_m: float,
+        radius_m: float,
+        max_points: int,
+        slope_share_m: float = 0.0,
+        min_chord_m: float = 0.5,
     ) -> None:
         if cell_m <= 0 or radius_m <= 0 or max_points < 1 or not slope_share_m >= 0.0:
             raise ValueError(
@@ -79,6 +86,7 @@ class ObstacleMemory:
             )
         self.cell_m = cell_m
         self.slope_share_m = slope_share_m
+        self.min_chord_m = min_chord_m
         self.radius_m = radius_m
         self.max_points = max_points
         self.version = 0
@@ -95,6 +103,10 @@ class ObstacleMemory:
         self._reach = np.zeros(_INITIAL_SLOTS)
         self._reach_z = np.zeros(_INITIAL_SLOTS)
         self._bound = np.full(_INITIAL_SLOTS, np.inf)
+        # The cycle of the cell's first reading with a reach (-1: none), and a reach that
+        # waits for a second cycle's (`_confirmed`), metres.
+        self._reach_since = np.full(_INITIAL_SLOTS, -1, dtype=np.int64)
+        self._reach_waiting = np.zeros(_INITIAL_SLOTS)
         self._free: list[int] = list(range(_INITIAL_SLOTS - 1, -1, -1))
         self._xy: FloatArray | None = None
         self._infl: FloatArray | None = None
@@ -130,6 +142,10 @@ class ObstacleMemory:
             self._reach = np.concatenate([self._reach, np.zeros(old)])
             self._reach_z = np.concatenate([self._reach_z, np.zeros(old)])
             self._bound = np.concatenate([self._bound, np.full(old, np.inf)])
+            self._reach_since = np.concatenate(
+                [self._reach_since, np.full(old, -1, dtype=np.int64)]
+            )
+            self._reach_waiting = np.concatenate([self._reach_waiting, np.zeros(old)])
             self._free = list(range(2 * old - 1, old - 1, -1))
         return self._free.pop()
 
@@ -171,6 +187,7 @@ class ObstacleMemory:
         xyz = self._xyz
         bound = self._bound
         shared = False  # a reach or a measured slope came: `_share_slopes`
+        confirmed: list[tuple[int, int]] = []  # cells whose reach was taken
         for (x, y, z), e, theta, reach, reach_z in zip(
             pts.tolist(), inflation, slopes, reaches, reach_zs, strict=True
         ):
@@ -185,6 +202,7 @@ class ObstacleMemory:
                 xyz, bound = self._xyz, self._bound  # (a new slot may have grown the arrays)
                 self._slope[slot] = math.nan
                 bound[slot] = math.inf
+                self._reach_since[slot] = -1
                 self._log(version, slot, math.nan, math.nan, math.nan)
             else:
                 x0, y0 = xyz.item(slot, 0), xyz.item(slot, 1)
@@ -200,7 +218,17 @@ class ObstacleMemory:
                     self._slope[slot] = theta
                     self._slope_inflation[slot] = e
                 e = float(self._slope_inflation[slot])
-            reach = reach if math.isfinite(reach) and reach > 0.0 else 0.0
+            self._reach_waiting[slot] = 0.0
+            if math.isfinite(reach) and reach > 0.0:
+                if self._reach_since.item(slot) < 0:
+                    self._reach_since[slot] = cycle
+                if self._confirmed(key, cycle):
+                    confirmed.append(key)
+                else:  # (one reading, a stray one maybe, widens nothing yet)
+                    self._reach_waiting[slot] = reach
+                    reach = 0.0
+            else:
+                reach = 0.0
             self._base[slot] = e
             self._reach_z[slot] = reach_z
             self._reach[slot] = reach
@@ -210,6 +238,8 @@ class ObstacleMemory:
             if check is not None:
                 cx, cy, slack = check
                 self._far_check = (cx, cy, min(slack, self.radius_m - math.hypot(x - cx, y - cy)))
+        for key in confirmed:
+            self._take_waiting_near(key, version)
         if shared:
             self._share_slopes(version)
         while len(cells) > self.max_points:
@@ -221,29 +251,75 @@ class ObstacleMemory:
             self._changed()
         return new
 
+    def _neighbours(self, key: tuple[int, int]) -> list[int]:
+        """The slots of cell `key` and the (up to 8) cells around it."""
+        cells = self._cells
+        kx, ky = key
+        return [
+            slot
+            for dx in (-1, 0, 1)
+            for dy in (-1, 0, 1)
+            if (slot := cells.get((kx + dx, ky + dy))) is not None
+        ]
+
+    def _confirmed(self, key: tuple[int, int], cycle: int) -> bool:
+        """Whether cell `key` or one around it had a reading with a reach before `cycle`:
+        a reach is taken from the second cycle that sees one there."""
+        since = self._reach_since
+        return any(0 <= since.item(slot) < cycle for slot in self._neighbours(key))
+
+    def _take_waiting_near(self, key: tuple[int, int], version: int) -> None:
+        """A reach was taken in cell `key`: the cells around it take the reach they were
+        waiting with (their change logged from `version`)."""
+        waiting = self._reach_waiting
+        for slot in self._neighbours(key):
+            r = waiting.item(slot)
+            if r <= 0.0:
+                continue
+            waiting[slot] = 0.0
+            self._reach[slot] = r
+            e = self._base.item(slot) + min(r, self._bound.item(slot))
+            if e > self._inflation.item(slot):
+                self._log(
+                    version,
+                    slot,
+                    self._xyz.item(slot, 0),
+                    self._xyz.item(slot, 1),
+                    self._inflation.item(slot),
+                )
+                self._inflation[slot] = e
+
     def _share_slopes(self, version: int) -> None:
-        """Cap each point's reach at its rise over the tangent of the steepest slope
-        measured (a short chord's) within slope_share_m of it horizontally: a lower bound on
-        the surface's slope near it, as the long chord's is, so that a solid measured
-        steep by a short chord (a wall, a pillar) is not taken to reach down at a long
-        chord's shallower slope. Lowered inflations are logged from `version`."""
+        """Cap each point's reach at its rise over the tangent of the steepest of: the slopes
+        measured (short chords') within slope_share_m of it horizontally, and its chords to
+        the other remembered points within slope_share_m (at least min_chord_m long
+        horizontally or vertically; points seen in other cycles: a beam tilted up meets a
+        wall at other heights as the vehicle moves). Each is a lower bound on the surface's
+        slope near it, as the long chord's is, so that a solid measured steep (a wall, a
+        pillar) is not taken to reach down at a long chord's shallower slope. Lowered
+        inflations are logged from `version`."""
         reach = self._reach
         if not (reach > 0.0).any():
             return
+        self._slots = None  # (the cells changed: `add` has not yet said so)
         slots = self._cell_slots()
-        theta = self._slope[slots]
-        steep = slots[theta > 0.0]  # (False for NaN: none measured)
         aims = slots[reach[slots] > 0.0]
-        if len(steep) == 0 or len(aims) == 0:
+        if len(aims) == 0 or len(slots) < 2:
             return
-        d = self._xyz[aims, None, :2] - self._xyz[None, steep, :2]
-        near = (d * d).sum(axis=2) <= self.slope_share_m**2
-        steepest = np.where(near, self._slope[steep][None, :], 0.0).max(axis=1)
+        xyz = self._xyz
+        d = xyz[aims, None, :] - xyz[None, slots, :]  # (k, m, 3)
+        h = np.sqrt(d[:, :, 0] ** 2 + d[:, :, 1] ** 2)
+        dz = np.abs(d[:, :, 2])
+        near = h <= self.slope_share_m
+        measured = np.where(near, np.nan_to_num(self._slope[slots])[None, :], 0.0)
+        chord = (h >= self.min_chord_m) | (dz >= self.min_chord_m)
+        chords = np.where(near & chord, np.arctan2(dz, h), 0.0)
+        steepest = np.maximum(measured, chords).max(axis=1)
         has = steepest > 0.0
         if not has.any():
             return
         aims, steepest = aims[has], steepest[has]
-        rise = np.maximum(self._xyz[aims, 2] - self._reach_z[aims], 0.0)
+        rise = np.maximum(xyz[aims, 2] - self._reach_z[aims], 0.0)
         capped = np.minimum(reach[aims], rise / np.tan(steepest))
         lower = capped < reach[aims]
         for slot, r in zip(aims[lower].tolist(), capped[lower].tolist(), strict=True):

@@ -135,9 +135,6 @@ class _SteepColumns(NamedTuple):
 
 
 _NO_COLUMNS = _SteepColumns(_NO_INFLATION, _NO_INFLATION, _NO_INFLATION, _NO_INFLATION)
-_SLOPE_SHARE_M = 1.5
-"""A long chord's reach is taken at most at the steepest slope a short chord measured within
-this of its point horizontally, metres (`ObstacleMemory.slope_share_m`)."""
 _REACH_FREE_SHORT_M = 0.1
 """A ray bounds a remembered point's reach with its free part only up to this much short of
 its range (range noise), metres (`Planner._bound_reach`)."""
@@ -183,6 +180,10 @@ shorter ones a few centimetres of range noise would read as a steep slope."""
 _LOCAL_CHORD_M = 2.5
 """Longest horizontal chord whose slope is taken as the slope at its upper end, and the
 farthest a flank is taken to reach below a remembered point (`Planner._steep_points`)."""
+_SLOPE_SHARE_M = _LOCAL_CHORD_M
+"""A long chord's reach is taken at most at the steepest slope a short chord measured within
+this of its point horizontally, metres (`ObstacleMemory.slope_share_m`): as far as a short
+chord's slope is taken as the slope at its upper end."""
 _LEVEL_EPS = 1e-6
 """A sensor whose boresight's up component (body frame) is at most this is not tilted up."""
 _GROUND_FIT_RADIUS_M = 3.0
@@ -354,7 +355,11 @@ class Planner:
             dtype=np.intp,
         )
         self._memory = ObstacleMemory(
-            params.memory_cell_m, params.memory_radius_m, params.memory_max_points, _SLOPE_SHARE_M
+            params.memory_cell_m,
+            params.memory_radius_m,
+            params.memory_max_points,
+            _SLOPE_SHARE_M,
+            _MIN_CHORD_M,
         )
         self._path: Path = route
         self._samples: _PathSamples | None = None
@@ -1600,11 +1605,13 @@ class Planner:
         """Bound the remembered points' reach on long chords by this cycle's rays
         (`ObstacleMemory.bound_reach`): each ray, obstacle or surface, saw nothing up to
         _REACH_FREE_SHORT_M short of what it measured (range noise), or up to its max range
-        when it saw nothing; readings of 0, NaN or below min range say nothing. In motion
-        too: a ray passing beside a point is the evidence here (it drops nothing)."""
+        when it detected nothing (0, inf, or at or over max: the service passes "out of
+        range" on as 0); NaN says nothing. Unlike carving, a reading of 0 counts: a wrong
+        one can only take a reach away, back to the point as seen. In motion too: a ray
+        passing beside a point is the evidence here (it drops nothing)."""
         sensors = self.sensors
         r = np.asarray(ranges, dtype=np.float64)
-        nothing = np.isfinite(r) & (r >= sensors.max_range_m)
+        nothing = ~valid & ((r == 0.0) | (r >= sensors.max_range_m))
         free = np.where(valid, r - _REACH_FREE_SHORT_M, np.where(nothing, sensors.max_range_m, 0.0))
         use = (valid | nothing) & (free > 0.0)
         if not use.any():
