@@ -177,7 +177,7 @@ def test_a_reach_is_bounded_by_rays_that_pass_below_its_height() -> None:
     down = np.array([[0.0, 0.0, -1.0]])  # straight down beside the point: 0.1 m from it
     assert mem.bound_reach(np.array([5.1, 0.2, 6.0]), down, np.array([5.0]), 0.3) == 1
     assert np.allclose(mem.inflation_m(), [0.3 + 0.1])
-    q = p + [0.1, 0.0, 0.0]
+    q = p + np.array([0.1, 0.0, 0.0])
     mem.add(q, 3, np.array([0.3]), np.array([np.nan]), np.array([2.0]), np.array([2.0]))
     assert np.allclose(mem.inflation_m(), [0.3 + 0.2])
 
@@ -198,7 +198,8 @@ def test_a_reach_takes_the_steepest_slope_measured_near_its_point() -> None:
             mem.add(pts, cycle, *extra)
         if order == "reach first":
             mem.add(*slope)
-        infl = dict(zip(map(tuple, mem.points_xy().tolist()), mem.inflation_m().tolist()))
+        xy, e = mem.points_xy().tolist(), mem.inflation_m().tolist()
+        infl = dict(zip(map(tuple, xy), e, strict=True))
         assert np.isclose(infl[(5.1, 0.1)], 4.0 / np.tan(theta))
         assert infl[(9.1, 0.1)] == 2.5
 

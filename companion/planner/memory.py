@@ -16,16 +16,20 @@ slope stays for the next measured one.
 
 A point may also carry a reach (metres, >= 0, on top of that inflation): how far a flank
 below it is guessed to come nearer at flight height when no short chord measured its slope
-(`Planner._steep_points`), with the height it comes down to. The guess is bounded by what
-rays see free over time (`bound_reach`): a ray that passes at or below that height
-horizontally d from the point shows the solid there does not reach d (a heightfield is free
-above any free point), so the reach kept is at most the least such d seen. The bound stays
-with the cell while it lives; a re-observed point that moved within its cell takes the
-bound plus the distance moved (the free place seen is at most that much farther). A cell
-takes a reach only once it or a cell next to it had one in an earlier cycle too
-(`_confirmed`); till then the reach waits. A point
-within `slope_share_m` of a cell whose slope was measured (a short chord) reaches down at
-that slope where it is the steeper one (`_share_slopes`).
+(`Planner._steep_points`), with the height it comes down to. The guess is bounded by
+evidence gathered over time:
+- a cell takes a reach only once it or a cell next to it had one in an earlier cycle too
+  (`_confirmed`); till then the reach waits;
+- it reaches down at most at the steepest slope measured (short chords) within
+  `slope_share_m` of it, or of its chords to the other remembered points there (points
+  seen in other cycles at other heights: `_share_slopes`);
+- what rays see free (`bound_reach`): a ray that passes at or below that height
+  horizontally d from the point shows the solid there does not reach d (a heightfield is
+  free above any free point), so the reach kept is at most the least such d seen. The
+  bound stays with the cell while it lives; a re-observed point that moved within its cell
+  takes the bound plus the distance moved (the free place seen is at most that much
+  farther).
+None of it lowers the inflation without the reach.
 
 Storage: the points live in rows ("slots") of one preallocated array; a dict maps each grid
 cell to its slot and keeps the cells oldest first. Adding or replacing a point writes one

@@ -935,10 +935,13 @@ class Planner:
           no level sensor may see, and no farther than _LOCAL_CHORD_M (the most a short
           chord can reach). A level sensor's point is above flight height only by the
           vehicle's attitude, and its reading is the solid at flight height. That reach is
-          kept apart from the inflation (as the reach, down to z_g + H_d): the memory
-          bounds it by what rays see free at that height over time
-          (`ObstacleMemory.bound_reach`, `_bound_reach`), so that a wall or a pillar is
-          not widened once a ray has passed beside it.
+          kept apart from the inflation (as the reach, down to z_g + H_d), and the memory
+          bounds it by evidence over time (`ObstacleMemory`): taken from a second cycle's
+          reading there; at most at the steepest slope measured within _SLOPE_SHARE_M,
+          or chord to the other remembered points there (a pillar's face measured steep
+          by the forward beams, a wall met at other heights); at most as far as the rays
+          that passed it at flight height allow (`_bound_reach`). So a wall or a pillar
+          is not widened, and a flank keeps what it may reach.
         Short chord (h <= _LOCAL_CHORD_M): e = max(0, D_min / sin(theta) - D_min) + min(h,
         max(0, z_i - z_g - H_d) / tan(theta)), no reach; long chord, sensor tilted up: e =
         0, reach min(_LOCAL_CHORD_M, max(0, z_i - z_g - H_d) / tan(theta)); else e = 0 and
