@@ -190,7 +190,6 @@ class ObstacleMemory:
         version = self.version
         xyz = self._xyz
         bound = self._bound
-        shared = False  # a reach or a measured slope came: `_share_slopes`
         confirmed: list[tuple[int, int]] = []  # cells whose reach was taken
         for (x, y, z), e, theta, reach, reach_z in zip(
             pts.tolist(), inflation, slopes, reaches, reach_zs, strict=True
@@ -237,15 +236,13 @@ class ObstacleMemory:
             self._reach_z[slot] = reach_z
             self._reach[slot] = reach
             self._inflation[slot] = e + min(reach, bound.item(slot))
-            shared = shared or reach > 0.0 or math.isfinite(theta)
             check = self._far_check
             if check is not None:
                 cx, cy, slack = check
                 self._far_check = (cx, cy, min(slack, self.radius_m - math.hypot(x - cx, y - cy)))
         for key in confirmed:
             self._take_waiting_near(key, version)
-        if shared:
-            self._share_slopes(version)
+        self._share_slopes(pts[:, :2], version)
         while len(cells) > self.max_points:
             self._drop_slots([cells.pop(next(iter(cells)))])
             new += 1
@@ -293,24 +290,30 @@ class ObstacleMemory:
                 )
                 self._inflation[slot] = e
 
-    def _share_slopes(self, version: int) -> None:
+    def _share_slopes(self, added_xy: FloatArray, version: int) -> None:
         """Cap each point's reach at its rise over the tangent of the steepest of: the slopes
         measured (short chords') within slope_share_m of it horizontally, and its chords to
         the other remembered points within slope_share_m (at least min_chord_m long
         horizontally or vertically; points seen in other cycles: a beam tilted up meets a
         wall at other heights as the vehicle moves). Each is a lower bound on the surface's
         slope near it, as the long chord's is, so that a solid measured steep (a wall, a
-        pillar) is not taken to reach down at a long chord's shallower slope. Lowered
-        inflations are logged from `version`."""
+        pillar) is not taken to reach down at a long chord's shallower slope. Only points
+        within slope_share_m of one just added (added_xy, (n, 2) metres) can be capped
+        further. Lowered inflations are logged from `version`."""
         reach = self._reach
-        if not (reach > 0.0).any():
+        if len(added_xy) == 0 or not (reach > 0.0).any():
             return
         self._slots = None  # (the cells changed: `add` has not yet said so)
         slots = self._cell_slots()
-        aims = slots[reach[slots] > 0.0]
-        if len(aims) == 0 or len(slots) < 2:
-            return
         xyz = self._xyz
+        share = self.slope_share_m
+        aims = slots[reach[slots] > 0.0]
+        gap = xyz[aims, None, :2] - np.asarray(added_xy)[None, :, :]
+        aims = aims[((gap * gap).sum(axis=2) <= share * share).any(axis=1)]
+        if len(aims) == 0:
+            return
+        lo, hi = xyz[aims, :2].min(axis=0) - share, xyz[aims, :2].max(axis=0) + share
+        slots = slots[np.all((xyz[slots, :2] >= lo) & (xyz[slots, :2] <= hi), axis=1)]
         d = xyz[aims, None, :] - xyz[None, slots, :]  # (k, m, 3)
         h = np.sqrt(d[:, :, 0] ** 2 + d[:, :, 1] ** 2)
         dz = np.abs(d[:, :, 2])
