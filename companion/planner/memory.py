@@ -111,6 +111,8 @@ class ObstacleMemory:
         # waits for a second cycle's (`_confirmed`), metres.
         self._reach_since = np.full(_INITIAL_SLOTS, -1, dtype=np.int64)
         self._reach_waiting = np.zeros(_INITIAL_SLOTS)
+        # The steepest slope that capped the cell's reach (`_share_slopes`), rad (0: none).
+        self._reach_slope = np.zeros(_INITIAL_SLOTS)
         self._free: list[int] = list(range(_INITIAL_SLOTS - 1, -1, -1))
         self._xy: FloatArray | None = None
         self._infl: FloatArray | None = None
@@ -150,6 +152,7 @@ class ObstacleMemory:
                 [self._reach_since, np.full(old, -1, dtype=np.int64)]
             )
             self._reach_waiting = np.concatenate([self._reach_waiting, np.zeros(old)])
+            self._reach_slope = np.concatenate([self._reach_slope, np.zeros(old)])
             self._free = list(range(2 * old - 1, old - 1, -1))
         return self._free.pop()
 
@@ -206,6 +209,7 @@ class ObstacleMemory:
                 self._slope[slot] = math.nan
                 bound[slot] = math.inf
                 self._reach_since[slot] = -1
+                self._reach_slope[slot] = 0.0
                 self._log(version, slot, math.nan, math.nan, math.nan)
             else:
                 x0, y0 = xyz.item(slot, 0), xyz.item(slot, 1)
@@ -295,9 +299,12 @@ class ObstacleMemory:
         measured (short chords') within slope_share_m of it horizontally, and its chords to
         the other remembered points within slope_share_m (at least min_chord_m long
         horizontally or vertically; points seen in other cycles: a beam tilted up meets a
-        wall at other heights as the vehicle moves). Each is a lower bound on the surface's
-        slope near it, as the long chord's is, so that a solid measured steep (a wall, a
-        pillar) is not taken to reach down at a long chord's shallower slope. Only points
+        wall at other heights as the vehicle moves), and the slope that capped a point
+        within min_chord_m of it (so along a row of points that a beam tilted up leaves on
+        a face as the vehicle passes it, ahead of where a level beam measures the face).
+        Each is a lower bound on the surface's slope near it, as the long chord's is, so
+        that a solid measured steep (a wall, a pillar) is not taken to reach down at a long
+        chord's shallower slope. Only points
         within slope_share_m of one just added (added_xy, (n, 2) metres) can be capped
         further. Lowered inflations are logged from `version`."""
         reach = self._reach
@@ -319,13 +326,17 @@ class ObstacleMemory:
         dz = np.abs(d[:, :, 2])
         near = h <= self.slope_share_m
         measured = np.where(near, np.nan_to_num(self._slope[slots])[None, :], 0.0)
+        # The slope that capped a point next to it (a row of points one beam met along a
+        # face, the face measured steep at one end of the row).
+        beside = np.where(h <= self.min_chord_m, self._reach_slope[slots][None, :], 0.0)
         chord = (h >= self.min_chord_m) | (dz >= self.min_chord_m)
         chords = np.where(near & chord, np.arctan2(dz, h), 0.0)
-        steepest = np.maximum(measured, chords).max(axis=1)
+        steepest = np.maximum(np.maximum(measured, chords), beside).max(axis=1)
         has = steepest > 0.0
         if not has.any():
             return
         aims, steepest = aims[has], steepest[has]
+        self._reach_slope[aims] = np.maximum(self._reach_slope[aims], steepest)
         rise = np.maximum(xyz[aims, 2] - self._reach_z[aims], 0.0)
         capped = np.minimum(reach[aims], rise / np.tan(steepest))
         lower = capped < reach[aims]
