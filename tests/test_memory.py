@@ -220,3 +220,21 @@ def test_a_reach_waits_for_a_second_cycle_and_takes_the_chords_between_points() 
     steep = 0.3 / 1.5  # 1 / tan of the chord from the first point, the steepest
     across = np.hypot(0.3, 0.3) / 1.5  # from the second
     assert np.allclose(mem.inflation_m(), [4.0 * steep, 4.0 * across, 2.5 * steep])
+
+
+def test_a_row_of_reach_points_takes_the_slope_measured_at_its_end() -> None:
+    """A beam tilted up leaves a row of points 4 m up along a face as the vehicle passes it,
+    one cell a cycle; a short chord measured the face vertical under the row's first point.
+    Each point of the row takes the slope that capped the one before it (within 0.5 m), so
+    the row keeps no reach 4 m on, beyond the 2.5 m that a measured slope is shared over;
+    a row with no slope measured keeps its reach."""
+    for measured in (True, False):
+        mem = ObstacleMemory(0.25, 40.0, 64, slope_share_m=2.5, min_chord_m=0.5)
+        if measured:
+            mem.add(np.array([[5.1, 0.1, 2.0]]), 0, np.zeros(1), np.array([np.pi / 2]))
+        extra = (np.zeros(1), np.full(1, np.nan), np.array([2.5]), np.array([2.0]))
+        for k in range(17):  # x from 5.1 to 9.1 m
+            mem.add(np.array([[5.1 + 0.25 * k, 0.1, 4.0]]), k + 1, *extra)
+        row = mem.inflation_m()  # (the measured cell is the row's first)
+        assert len(row) == 17
+        assert (row < 0.01).all() if measured else (row == 2.5).all()
