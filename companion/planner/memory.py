@@ -55,7 +55,8 @@ from companion.planner.types import BoolArray, FloatArray
 _INITIAL_SLOTS = 64
 _REACH_STEP_M = 0.05
 """`bound_reach` lowers a stored inflation only by at least this much (or to no reach at
-all), so that rays sweeping past a point do not change the memory every cycle, metres."""
+all), so that rays sweeping past a point do not change the memory every cycle, and neither
+it nor `_share_slopes` looks at a reach of at most this much, metres."""
 _LOG_ENTRIES = 512
 """The change log keeps at most about this many entries (one per slot touched by a change),
 at least half as many; a caller further behind is told to derive afresh (`changes_since`
@@ -308,13 +309,13 @@ class ObstacleMemory:
         within slope_share_m of one just added (added_xy, (n, 2) metres) can be capped
         further. Lowered inflations are logged from `version`."""
         reach = self._reach
-        if len(added_xy) == 0 or not (reach > 0.0).any():
+        if len(added_xy) == 0 or not (reach > _REACH_STEP_M).any():
             return
         self._slots = None  # (the cells changed: `add` has not yet said so)
         slots = self._cell_slots()
         xyz = self._xyz
         share = self.slope_share_m
-        aims = slots[reach[slots] > 0.0]
+        aims = slots[reach[slots] > _REACH_STEP_M]
         gap = xyz[aims, None, :2] - np.asarray(added_xy)[None, :, :]
         aims = aims[((gap * gap).sum(axis=2) <= share * share).any(axis=1)]
         if len(aims) == 0:
@@ -474,12 +475,11 @@ class ObstacleMemory:
         the inflation without the reach, plus the reach up to the bound (lowered in steps
         of at least _REACH_STEP_M). Returns how many inflations were lowered."""
         reach = self._reach
-        if len(free_m) == 0 or not (reach > 0.0).any():
+        # Only a reach kept above _REACH_STEP_M can be lowered by a step (free slots: 0).
+        live = np.minimum(reach, self._bound) > _REACH_STEP_M
+        if len(free_m) == 0 or not live.any():
             return 0
-        slots = self._cell_slots()
-        slots = slots[np.minimum(reach[slots], self._bound[slots]) > 0.0]
-        if len(slots) == 0:
-            return 0
+        slots = np.flatnonzero(live)
         o = np.asarray(origin_enu, dtype=np.float64).reshape(3)
         dirs = np.asarray(directions_enu, dtype=np.float64).reshape(-1, 3)
         length = np.asarray(free_m, dtype=np.float64).reshape(1, -1)
