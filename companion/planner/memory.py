@@ -460,6 +460,10 @@ class ObstacleMemory:
         self.generation += 1
         return int(far.sum())
 
+    def has_reach(self) -> bool:
+        """Whether any remembered point has a reach (`bound_reach` has work to do)."""
+        return bool((self._reach > 0.0).any())
+
     def bound_reach(
         self,
         origin_enu: FloatArray,

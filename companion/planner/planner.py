@@ -1612,6 +1612,8 @@ class Planner:
         range" on as 0); NaN says nothing. Unlike carving, a reading of 0 counts: a wrong
         one can only take a reach away, back to the point as seen. In motion too: a ray
         passing beside a point is the evidence here (it drops nothing)."""
+        if not self._memory.has_reach():
+            return  # (most cycles: nothing to bound)
         sensors = self.sensors
         r = np.asarray(ranges, dtype=np.float64)
         nothing = ~valid & ((r == 0.0) | (r >= sensors.max_range_m))
