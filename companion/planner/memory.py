@@ -286,14 +286,7 @@ class ObstacleMemory:
             self._reach[slot] = r
             e = self._base.item(slot) + min(r, self._bound.item(slot))
             if e > self._inflation.item(slot):
-                self._log(
-                    version,
-                    slot,
-                    self._xyz.item(slot, 0),
-                    self._xyz.item(slot, 1),
-                    self._inflation.item(slot),
-                )
-                self._inflation[slot] = e
+                self._set_inflation(slot, e, version)
 
     def _share_slopes(self, added_xy: FloatArray, version: int) -> None:
         """Cap each point's reach at its rise over the tangent of the steepest of: the slopes
@@ -305,9 +298,9 @@ class ObstacleMemory:
         a face as the vehicle passes it, ahead of where a level beam measures the face).
         Each is a lower bound on the surface's slope near it, as the long chord's is, so
         that a solid measured steep (a wall, a pillar) is not taken to reach down at a long
-        chord's shallower slope. Only points
-        within slope_share_m of one just added (added_xy, (n, 2) metres) can be capped
-        further. Lowered inflations are logged from `version`."""
+        chord's shallower slope. Only points within slope_share_m of one just added
+        (added_xy, (n, 2) metres) can be capped further. Lowered inflations are logged
+        from `version`."""
         reach = self._reach
         if len(added_xy) == 0 or not (reach > _REACH_STEP_M).any():
             return
@@ -325,7 +318,7 @@ class ObstacleMemory:
         d = xyz[aims, None, :] - xyz[None, slots, :]  # (k, m, 3)
         h = np.sqrt(d[:, :, 0] ** 2 + d[:, :, 1] ** 2)
         dz = np.abs(d[:, :, 2])
-        near = h <= self.slope_share_m
+        near = h <= share
         measured = np.where(near, np.nan_to_num(self._slope[slots])[None, :], 0.0)
         # The slope that capped a point next to it (a row of points one beam met along a
         # face, the face measured steep at one end of the row).
@@ -345,14 +338,14 @@ class ObstacleMemory:
             reach[slot] = r
             e = self._base.item(slot) + min(r, self._bound.item(slot))
             if e < self._inflation.item(slot):
-                self._log(
-                    version,
-                    slot,
-                    self._xyz.item(slot, 0),
-                    self._xyz.item(slot, 1),
-                    self._inflation.item(slot),
-                )
-                self._inflation[slot] = e
+                self._set_inflation(slot, e, version)
+
+    def _set_inflation(self, slot: int, inflation_m: float, version: int) -> None:
+        """Give a stored point (its slot) a new inflation, metres, its change logged from
+        `version`."""
+        xyz = self._xyz
+        self._log(version, slot, xyz.item(slot, 0), xyz.item(slot, 1), self._inflation.item(slot))
+        self._inflation[slot] = inflation_m
 
     def _log(self, version: int, slot: int, x: float, y: float, inflation_m: float) -> None:
         """A change log entry: `slot` changes from version `version`, from (x, y) with
@@ -519,14 +512,7 @@ class ObstacleMemory:
             return 0
         version = self.version
         for slot, e in zip(slots[lower].tolist(), new[lower].tolist(), strict=True):
-            self._log(
-                version,
-                slot,
-                self._xyz.item(slot, 0),
-                self._xyz.item(slot, 1),
-                self._inflation.item(slot),
-            )
-            self._inflation[slot] = e
+            self._set_inflation(slot, e, version)
         self._changed()
         return int(lower.sum())
 
