@@ -3,7 +3,9 @@
 import itertools
 
 import numpy as np
+import pytest
 
+from companion.planner import gridpath
 from companion.planner.avoidance import AvoidanceRequest, min_distance, plan_detour
 from companion.planner.gridpath import grid_search
 from companion.planner.params import PlannerParams
@@ -202,3 +204,27 @@ def test_the_grid_search_is_a_plain_a_star() -> None:
         found += cells is not None
         none += cells is None
     assert found > 10 and none > 0
+
+
+def test_a_pocket_deeper_than_the_first_margin_is_left_over_a_wider_grid(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """The vehicle stands at the back of a U 10 m wide whose sides run 23 m back from its
+    back wall; the base point is 5 m behind that wall. The way out goes round the end of a
+    side, 18 m and more from both start and base point: past the first grid's margin (15 m),
+    where no way is found, so a wider grid is searched and its legs leave by the U's mouth."""
+    back = _line((35.0, -5.0), (35.0, 5.0))
+    sides = np.vstack([_line((12.0, 5.0), (35.0, 5.0)), _line((12.0, -5.0), (35.0, -5.0))])
+    walls = np.vstack([back, sides])
+    route = Route(np.array([[0.0, 0.0], [40.0, 0.0], [70.0, 0.0]]), 0.0, 0.0)
+    request = _at_rest((30.0, 0.0), walls)
+    monkeypatch.setattr(gridpath, "MARGINS_M", gridpath.MARGINS_M[:1])
+    assert _run(grid_search(route, request, PARAMS))[0] is None
+    monkeypatch.undo()
+    plan, _ = _run(grid_search(route, request, PARAMS))
+    assert plan is not None and plan.base_index == 1
+    legs = plan.path.segments[: len(plan.stops)]
+    np.testing.assert_allclose(legs[-1].evaluate(1.0), route.base_points[1], atol=1e-12)
+    samples = np.vstack([leg.sample(200) for leg in legs])
+    assert float(min_distance(samples, walls).min()) >= D_M - 0.05
+    assert float(samples[:, 0].min()) < 12.0 - D_M + 0.1  # round a side's end, out of the mouth

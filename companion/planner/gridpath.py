@@ -34,8 +34,10 @@ from companion.planner.types import BoolArray, FloatArray
 
 CELL_M = 0.5
 """Grid cell size, metres."""
-MARGIN_M = 15.0
-"""The grid covers the start and the base point grown by this, metres."""
+MARGINS_M = (15.0, 30.0)
+"""The grid covers the start and the base point grown by the first of these, metres; by the
+next when no way was found on it (a pocket whose walls reach farther than the first margin
+from both ends: the way out goes round their far end)."""
 EXPANSIONS_PER_UNIT = 50
 """A* cell expansions per work unit (about as costly as one candidate correction's check)."""
 MAX_EXPANSIONS = 60_000
@@ -83,11 +85,11 @@ def grid_search(
     # last with cell centres only: a passage whose middle is clear by less than keep + half a
     # diagonal has no free cell at all (the legs are checked on their own samples anyway).
     levels = [(keep, _HALF_DIAGONAL_M) for keep in keeps] + [(keeps[-1], 0.0)]
-    for k in ahead.tolist():
+    for margin_m, k in itertools.product(MARGINS_M, ahead.tolist()):
         goal = route.base_points[k]
         for keep_m, cell_margin_m in levels:
             grid = _Grid.around(
-                start, goal, obstacles, inflation, keep_m, start_clear, cell_margin_m
+                start, goal, obstacles, inflation, keep_m, start_clear, cell_margin_m, margin_m
             )
             yield
             if grid.blocked_at(goal):
@@ -122,16 +124,17 @@ class _Grid:
         keep_m: float,
         start_clear_m: float,
         cell_margin_m: float = _HALF_DIAGONAL_M,
+        margin_m: float = MARGINS_M[0],
     ) -> _Grid:
-        """The grid over start and goal grown by MARGIN_M; a cell is blocked when its centre
+        """The grid over start and goal grown by margin_m; a cell is blocked when its centre
         is within keep_m + the point's inflation + cell_margin_m of a point (`_discs`; half
         a cell diagonal: every point of a free cell keeps keep_m). Around a start whose own
         cell that blocks (closer than keep_m + cell_margin_m: between two solids, the cells
         on every side of it are blocked too), the cells it needs to get out are left free
         (the check of the legs holds it to avoidance.ESCAPE_SLOPE and to its own clearance
         less 5 cm)."""
-        lo = np.minimum(start, goal) - MARGIN_M
-        hi = np.maximum(start, goal) + MARGIN_M
+        lo = np.minimum(start, goal) - margin_m
+        hi = np.maximum(start, goal) + margin_m
         nx, ny = (np.ceil((hi - lo) / CELL_M).astype(int) + 1).tolist()
         blocked = np.zeros((ny, nx), dtype=bool)
         cell_keep_m = keep_m + cell_margin_m
