@@ -535,8 +535,13 @@ def check_config(path: Path, out: TextIO | None = None, connection: str | None =
 
 def layout_summary(cfg: ServiceConfig) -> str:
     """What the sensor layout can see, for a person (`companion.planner.sight`): how far
-    ahead it flags a wall as steep at H_d, and where ahead no obstacle sensor looks level."""
-    from companion.planner.sight import describe_level_gaps, wall_flag_distance_m
+    ahead it flags a wall as steep at H_d, where ahead no obstacle sensor looks level, and
+    how far the heading swings across the gaps while moving."""
+    from companion.planner.sight import (
+        describe_level_gaps,
+        sweep_amplitude_rad,
+        wall_flag_distance_m,
+    )
 
     params = cfg.planner.to_params()
     table = cfg.sensor_table()
@@ -545,7 +550,16 @@ def layout_summary(cfg: ServiceConfig) -> str:
         ahead = f"flags a wall ahead as steep {flag:.1f} m out"
     else:
         ahead = "never flags a wall ahead as steep"
-    return f"{ahead}; {describe_level_gaps(table)}"
+    period = params.yaw_sweep_period_m
+    swing = sweep_amplitude_rad(table) if period > 0.0 else 0.0
+    if swing > 0.0:
+        sweep = (
+            f"moving, the heading swings {math.degrees(swing):.0f} deg either way over "
+            f"{period:g} m of travel (yaw_sweep_period_m)"
+        )
+    else:
+        sweep = "the heading stays on the path"
+    return f"{ahead}; {describe_level_gaps(table)}; {sweep}"
 
 
 def link_warnings(spec: LinkSpec) -> list[str]:

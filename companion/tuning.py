@@ -59,6 +59,7 @@ class PlannerConfig(Strict):
     reaction_time_s: Annotated[float, Field(ge=0, le=5, allow_inf_nan=False)] = 0.4
     leash_m: Positive = 2.0
     shape_terrain: bool = True
+    yaw_sweep_period_m: Annotated[float, Field(ge=0, allow_inf_nan=False)] = 4.0
 
     def to_params(self) -> PlannerParams:
         return PlannerParams(**self.model_dump())

@@ -79,6 +79,10 @@ def test_check_config_says_where_the_layout_does_not_look_level() -> None:
     assert check_config(CONFIGS / "default.yaml", out) == 0
     line = out.getvalue().splitlines()[1]
     assert "the widest 90 deg (90 deg left to the nose)" in line
+    # (the yaw sweep counts the beams tilted 25 degrees up: gaps of 45 degrees)
+    assert line.endswith(
+        "moving, the heading swings 22 deg either way over 4 m of travel (yaw_sweep_period_m)"
+    )
 
 
 def test_minimal_config_takes_defaults() -> None:
@@ -94,6 +98,10 @@ def test_minimal_config_takes_defaults() -> None:
     [
         ({"planner": {"h_d_m": -1}}, "planner.h_d_m: expected a number greater than 0, found -1"),
         ({"planner": {"hd": 2}}, "planner.hd: expected no such key"),
+        (
+            {"planner": {"yaw_sweep_period_m": -4}},
+            "planner.yaw_sweep_period_m: expected a number greater than or equal to 0, found -4",
+        ),
         ({"control": {"rate_hz": "fast"}}, "control.rate_hz: expected a valid number"),
         ({"identity": {"system_id": 255}}, "identity.system_id"),
         (

@@ -43,6 +43,12 @@ class PlannerParams:
     shape_terrain: raise eq. (3)'s aim point for the ground's slope across the heading and
         its curvature along it, from a fit of the recent surface hits (`ground`); False: the
         paper's eqs (3)-(4) alone.
+    yaw_sweep_period_m: while moving, the heading swings across the widest bearing gap
+        between the obstacle sensors ahead (`sight.sweep_amplitude_rad`: half the gap either
+        way, a sine over this much travel of X_d, metres), so that the rays cross every
+        bearing ahead: a pole or a wall's end standing in a gap is otherwise seen only when
+        it is already close. 0: the heading follows the path (the paper); nothing changes
+        with a layout that has no gap (a proximity ring).
     """
 
     h_d_m: float = 2.0
@@ -63,6 +69,7 @@ class PlannerParams:
     reaction_time_s: float = 0.4
     leash_m: float = 2.0
     shape_terrain: bool = True
+    yaw_sweep_period_m: float = 4.0
 
     def __post_init__(self) -> None:
         positive = (
@@ -91,6 +98,9 @@ class PlannerParams:
         if not (math.isfinite(self.reaction_time_s) and 0.0 <= self.reaction_time_s <= 5.0):
             value = self.reaction_time_s
             raise ValueError(f"reaction_time_s must be within [0, 5] s, got {value!r}")
+        if not (math.isfinite(self.yaw_sweep_period_m) and self.yaw_sweep_period_m >= 0.0):
+            value = self.yaw_sweep_period_m
+            raise ValueError(f"yaw_sweep_period_m must be >= 0 (0: off), got {value!r}")
         if self.memory_max_points < 16:
             raise ValueError(f"memory_max_points must be >= 16, got {self.memory_max_points}")
         object.__setattr__(self, "arc_method", ArcMethod(self.arc_method))

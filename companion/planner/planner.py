@@ -69,7 +69,11 @@ from companion.planner.sensors import (
     range_points_world,
     sector_fan_flu,
 )
-from companion.planner.sight import layout_speed_limit_mps, wall_flag_distance_m
+from companion.planner.sight import (
+    layout_speed_limit_mps,
+    sweep_amplitude_rad,
+    wall_flag_distance_m,
+)
 from companion.planner.terrain import (
     advance_exact,
     advance_paper,
@@ -168,6 +172,10 @@ _SCANS_PER_PLACE = 2
 _SCAN_PLACE_M = 1.0
 _YAW_RATE_AT_REST_RAD_S = 0.8
 _YAW_ALIGNED_RAD = 0.1
+SWEEP_YAW_RATE_MAX_RAD_S = 0.75
+"""The yaw sweep's rate at most (`Planner._swept_yaw`), rad/s (43 deg/s): within the yaw rate
+PX4 allows an automatic heading (MPC_YAWRAUTO_MAX, 60 deg/s by default in the PX4 SITL
+tested). At v_d 1 m/s the paper layout's swing peaks at 0.62."""
 _GROUND_HOLD_RANGE = 4.0
 _RETRY_BLOCKED_CYCLES = 20
 # Retreats after which a block at rest searches the grid before the covered track: a retreat
@@ -404,6 +412,17 @@ class Planner:
         self._sector_rows = np.flatnonzero(sensors.fov_rad > 0.0)
         self._arc_fans: dict[tuple[int, int], FloatArray] = {}  # (row, n): body FLU fan
         self._scan: list[float] = []  # yaw offsets still to turn to at rest, radians
+        # The heading's swing across the layout's gaps while moving (`_swept_yaw`): its
+        # amplitude (radians, 0: none) and phase (radians).
+        period = params.yaw_sweep_period_m
+        self._sweep_amplitude = sweep_amplitude_rad(sensors) if period > 0.0 else 0.0
+        self._sweep_phase = 0.0
+        # How far off the path the swing takes the forward surface sensor's ground hits,
+        # per metre of H_d over level ground (`_surface_pitch`): 0 without a swing.
+        fwd = sensors.specs[sensors.surface_index[Group.SURFACE_FORWARD]].boresight_flu
+        down = -float(fwd[2])
+        ahead = math.hypot(float(fwd[0]), float(fwd[1])) / down if down > 1e-9 else 0.0
+        self._swing_offset_per_h_d = ahead * math.sin(self._sweep_amplitude)
         self._climb = 0.0  # X_d's vertical speed at rest (`_climb_at_rest`), m/s
         self._settling = False  # ... and whether it is on its way to H_d there
         self._scan_held_s = 0.0
@@ -512,6 +531,12 @@ class Planner:
         self._cycle += 1
         self._search_units = 0
         events: list[str] = []
+        if self._cycle == 1 and self._sweep_amplitude > 0.0:
+            swing = math.degrees(self._sweep_amplitude)
+            events.append(
+                f"sensor layout leaves a {2.0 * swing:.0f} deg gap ahead: the heading swings "
+                f"{swing:.0f} deg either way over {params.yaw_sweep_period_m:g} m of travel"
+            )
 
         # Eqs (1)-(2): world points of every reading.
         rot = r_g(state.roll_rad, state.pitch_rad, state.yaw_rad)
@@ -611,9 +636,10 @@ class Planner:
 
         heading = self._path_heading()
         if self._v > speed.STOPPED_MPS:
-            self._yaw = heading
+            self._yaw = self._swept_yaw(heading, step_m, dt_s)
             self._scan.clear()  # (no list made each cycle)
         else:
+            self._sweep_phase = 0.0  # the next swing starts on the heading
             aim = heading + self._scan[0] if self._scan else heading
             turn = _YAW_RATE_AT_REST_RAD_S * dt_s
             self._yaw = wrap_pi(self._yaw + min(max(wrap_pi(aim - self._yaw), -turn), turn))
@@ -649,6 +675,7 @@ class Planner:
             and self._v <= speed.STOPPED_MPS
             and self._path_ends_at_goal()
             and lag <= 0.5 * params.leash_m
+            and abs(wrap_pi(heading - self._yaw)) < 1e-9  # turned back from a swing
         )
         x_d.setflags(write=False)
         setpoint = Setpoint(x_d, velocity, self._yaw, phi_d, acceleration)
@@ -762,10 +789,12 @@ class Planner:
         to the surface, and the stored ground points say where H_d is (`ground.floor_z`:
         the lowest height at H_d from every point).
 
-        - Where a ground point lies within _SURFACE_SNAP_M of the place _SURFACE_AHEAD_M
-          ahead of X_d on its heading, X_d steers at H_d from the points there (at that
-          point's own place, where its sphere is exact; between points their envelope dips
-          by H_d - sqrt(H_d^2 - r^2)), and no lower than H_d off the plane of the fit's
+        - Where a ground point lies within _SURFACE_SNAP_M (plus, while the heading swings,
+          how far off the path the swing takes the forward sensor's hits) of the place
+          _SURFACE_AHEAD_M ahead of X_d on its heading (and ahead of X_d along it), X_d
+          steers at H_d from the points there (at that point's own place, where its
+          sphere is exact; between points their envelope dips by H_d - sqrt(H_d^2 - r^2)),
+          and no lower than H_d off the plane of the fit's
           slope through that point (the points lie in a few lines along the track, and on
           a side slope the place where H_d's sphere touches the ground lies between them:
           there the fit's slope says more), carried over from the point to X_d's heading
@@ -789,12 +818,16 @@ class Planner:
         qy = yd + _SURFACE_AHEAD_M * math.sin(heading)
         store = self._ground_store
         # Every point within H_d of q, or of a point within _SURFACE_SNAP_M of q.
-        points, r2q = store.near(qx, qy, self._h_d + _SURFACE_SNAP_M)
+        # (Swinging, the forward sensor's hits lie up to its swing's offset off the line.)
+        snap = _SURFACE_SNAP_M + self._h_d * self._swing_offset_per_h_d
+        points, r2q = store.near(qx, qy, self._h_d + snap)
         floor_q = floor_z(points[:, 2], r2q, self._h_d)
         k = int(np.argmin(r2q)) if len(r2q) else -1
         px, py, pz = points[k].tolist() if k >= 0 else (qx, qy, math.nan)
         run = math.hypot(px - xd, py - yd)
-        if k >= 0 and r2q[k] <= _SURFACE_SNAP_M**2 and run >= 0.5 * _SURFACE_AHEAD_M:
+        # (ahead of X_d along the heading: a swing's hit can lie off the line beside X_d)
+        ahead = (px - xd) * math.cos(heading) + (py - yd) * math.sin(heading)
+        if k >= 0 and r2q[k] <= snap * snap and min(run, ahead) >= 0.5 * _SURFACE_AHEAD_M:
             dx = points[:, 0] - px
             dy = points[:, 1] - py
             target = floor_z(points[:, 2], dx * dx + dy * dy, self._h_d)
@@ -1067,6 +1100,22 @@ class Planner:
 
     def _path_heading(self) -> float:
         return self._path.segments[self._segment].heading(self._t)
+
+    def _swept_yaw(self, heading: float, step_m: float, dt_s: float) -> float:
+        """The yaw while moving (radians, ENU): the path's heading, swung across the widest
+        bearing gap between the obstacle sensors ahead by a sine of X_d's travel (amplitude
+        `sight.sweep_amplitude_rad`, one swing each way per `yaw_sweep_period_m` of travel,
+        step_m this cycle's), its rate at most SWEEP_YAW_RATE_MAX_RAD_S (a faster X_d swings
+        over more travel): the rays at the gap's edges cross every bearing of it, so a pole
+        or a wall's end standing in the gap is seen as far off as one on a ray. The heading
+        itself when the layout has no gap or the sweep is off."""
+        amplitude = self._sweep_amplitude
+        if amplitude == 0.0:
+            return heading
+        advance = 2.0 * math.pi * step_m / self.params.yaw_sweep_period_m
+        advance = min(advance, SWEEP_YAW_RATE_MAX_RAD_S * dt_s / amplitude)
+        self._sweep_phase = (self._sweep_phase + advance) % (2.0 * math.pi)
+        return wrap_pi(heading + amplitude * math.sin(self._sweep_phase))
 
     def _path_ends_at_goal(self) -> bool:
         return float(np.hypot(*(self._path.end - self.route.base_points[-1]))) < 1e-3

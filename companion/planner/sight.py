@@ -13,7 +13,8 @@ confirm must cover the reaction distance as well as the braking distance.
 
 `level_gaps_deg` says where a layout has no obstacle sensor looking level ahead: a solid
 approached from such a bearing is seen only when a surface sensor reaches it or a ray at the
-gap's edge meets it, whatever the speed.
+gap's edge meets it, whatever the speed. `sweep_amplitude_rad` is how far the heading must
+swing either way for the rays to cross every bearing ahead (the planner's yaw sweep).
 
 All lengths in metres, angles in radians (degrees where a name says so), body FLU with the
 vehicle level.
@@ -31,6 +32,13 @@ _AHEAD_COS = math.cos(math.radians(35.0))
 """Obstacle sensors within this angle of the nose (horizontally) look where the vehicle goes."""
 _LEVEL_TOLERANCE_RAD = math.radians(10.0)
 """Obstacle sensors whose boresight is within this of the horizontal look at flight height."""
+_SWEEP_ELEVATION_RAD = math.radians(35.0)
+"""Obstacle sensors within this of the horizontal count for the yaw sweep's gaps: a beam
+tilted up 25 degrees meets a solid at least d tan(25 deg) tall d away, which a pole or a
+wall standing on the ground is, and one that is not is flown over."""
+SWEEP_AMPLITUDE_MAX_RAD = math.radians(30.0)
+"""The yaw sweep swings at most this far either side of the path's heading: farther, the
+surface sensors' ground points leave the path's line by more than half H_d."""
 
 
 def wall_flag_distance_m(sensors: SensorTable, h_d_m: float, threshold_rad: float) -> float:
@@ -89,18 +97,20 @@ def layout_speed_limit_mps(
     return -a * lag + math.sqrt((a * lag) ** 2 + 2.0 * a * room)
 
 
-def level_gaps_deg(sensors: SensorTable) -> list[tuple[float, float]]:
+def level_gaps_deg(
+    sensors: SensorTable, tolerance_rad: float = _LEVEL_TOLERANCE_RAD
+) -> list[tuple[float, float]]:
     """Bearing intervals of the half ahead (degrees, body frame, clockwise from the nose as
     MAVLink's yaw: -90 left to 90 right) that no obstacle sensor looking level covers (its
-    boresight within _LEVEL_TOLERANCE_RAD of the horizontal; a beam covers its bearing, a
-    sector its field of view), widest first. Empty when the level sensors cover the half."""
+    boresight within tolerance_rad of the horizontal; a beam covers its bearing, a sector
+    its field of view), widest first. Empty when the level sensors cover the half."""
     covered: list[tuple[float, float]] = []
     for spec in sensors.specs:
         u = spec.boresight_flu
         horizontal = math.hypot(float(u[0]), float(u[1]))
         if spec.role is not Role.OBSTACLE or horizontal < 1e-9:
             continue
-        if abs(math.atan2(float(u[2]), horizontal)) > _LEVEL_TOLERANCE_RAD:
+        if abs(math.atan2(float(u[2]), horizontal)) > tolerance_rad:
             continue
         bearing = -math.degrees(math.atan2(float(u[1]), float(u[0])))
         half = 0.5 * math.degrees(spec.fov_rad)
@@ -119,6 +129,19 @@ def level_gaps_deg(sensors: SensorTable) -> list[tuple[float, float]]:
     # no -0.0).
     gaps = [(round(a, 6) + 0.0, round(b, 6) + 0.0) for a, b in gaps if b - a > 1e-6]
     return sorted(gaps, key=lambda g: (g[0] - g[1], g[0]))
+
+
+def sweep_amplitude_rad(sensors: SensorTable) -> float:
+    """Half the widest bearing gap ahead between the obstacle sensors within
+    _SWEEP_ELEVATION_RAD of the horizontal (`level_gaps_deg`), at most SWEEP_AMPLITUDE_MAX_RAD:
+    how far the heading must swing either way for the rays at a gap's edges to cross every
+    bearing of it (`Planner`'s yaw sweep). 0 when those sensors cover the half ahead.
+    Radians."""
+    gaps = level_gaps_deg(sensors, _SWEEP_ELEVATION_RAD)
+    if not gaps:
+        return 0.0
+    lo, hi = gaps[0]
+    return min(0.5 * math.radians(hi - lo), SWEEP_AMPLITUDE_MAX_RAD)
 
 
 def describe_level_gaps(sensors: SensorTable) -> str:
