@@ -539,6 +539,7 @@ def layout_summary(cfg: ServiceConfig) -> str:
     how far the heading swings across the gaps while moving."""
     from companion.planner.sight import (
         describe_level_gaps,
+        describe_sweep,
         sweep_amplitude_rad,
         wall_flag_distance_m,
     )
@@ -553,10 +554,7 @@ def layout_summary(cfg: ServiceConfig) -> str:
     period = params.yaw_sweep_period_m
     swing = sweep_amplitude_rad(table) if period > 0.0 else 0.0
     if swing > 0.0:
-        sweep = (
-            f"moving, the heading swings {math.degrees(swing):.0f} deg either way over "
-            f"{period:g} m of travel (yaw_sweep_period_m)"
-        )
+        sweep = f"moving, {describe_sweep(swing, period)} (yaw_sweep_period_m)"
     else:
         sweep = "the heading stays on the path"
     return f"{ahead}; {describe_level_gaps(table)}; {sweep}"

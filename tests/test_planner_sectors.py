@@ -22,12 +22,14 @@ def ring8():  # type: ignore[no-untyped-def]
     return sensor_table([SensorConfig.model_validate(s) for s in specs])
 
 
-def planner_over_flat_ground(table, route_end_x: float = 60.0):  # type: ignore[no-untyped-def]
-    """A planner with the sensor table at (0, 0, 2) heading east along a straight route, and
-    the ranges of flat ground 2 m below with nothing in the obstacle sensors' reach:
-    (planner, ranges)."""
+def planner_over_flat_ground(  # type: ignore[no-untyped-def]
+    table, route_end_x: float = 60.0, params: PlannerParams | None = None
+):
+    """A planner (default params) with the sensor table at (0, 0, 2) heading east along a
+    straight route, and the ranges of flat ground 2 m below with nothing in the obstacle
+    sensors' reach: (planner, ranges)."""
     route = Route(np.array([[0.0, 0.0], [route_end_x, 0.0]]), 0.0, 0.0)
-    planner = Planner(PlannerParams(), table, route, np.array([0.0, 0.0, 2.0]))
+    planner = Planner(params or PlannerParams(), table, route, np.array([0.0, 0.0, 2.0]))
     ranges = table.max_range_m.copy()
     for i in table.surface_index.values():
         ranges[i] = 2.0 / math.cos(math.pi / 4)

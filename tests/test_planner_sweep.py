@@ -10,20 +10,17 @@ import yaml
 
 from companion.harness import metrics as metrics_mod
 from companion.harness.closed_loop import run
-from companion.planner import Planner, PlannerParams, Route, VehicleState
+from companion.planner import PlannerParams, VehicleState
 from companion.planner.planner import SWEEP_YAW_RATE_MAX_RAD_S
 from companion.planner.sensors import SensorTable
 from companion.planner.sight import SWEEP_AMPLITUDE_MAX_RAD, sweep_amplitude_rad
 from companion.sim.scenario import load_scenario
 from companion.sim.world import World
 from companion.tuning import SensorConfig, sensor_table
+from tests.test_planner_sectors import planner_over_flat_ground
+from tests.test_sight import table
 
 ROOT = Path(__file__).parent.parent
-
-
-def table(name: str) -> SensorTable:
-    specs = yaml.safe_load((ROOT / "config/sensors" / name).read_text())
-    return sensor_table([SensorConfig.model_validate(s) for s in specs])
 
 
 def test_the_swing_is_half_the_widest_gap_ahead() -> None:
@@ -44,11 +41,7 @@ def test_a_single_beam_swings_no_more_than_the_cap() -> None:
 
 def _fly(sensors: SensorTable, params: PlannerParams, cycles: int) -> list:  # type: ignore[type-arg]
     """Flat ground, a 40 m route along +x, the vehicle where the setpoint puts it."""
-    route = Route(np.array([[0.0, 0.0], [40.0, 0.0]]), 0.0, 0.0)
-    planner = Planner(params, sensors, route, np.array([0.0, 0.0, 2.0]))
-    ranges = sensors.max_range_m.copy()
-    for i in sensors.surface_index.values():
-        ranges[i] = 2.0 / math.cos(math.pi / 4)
+    planner, ranges = planner_over_flat_ground(sensors, 40.0, params)
     state = VehicleState(np.array([0.0, 0.0, 2.0]), 0.0, 0.0, 0.0)
     out = []
     for _ in range(cycles):

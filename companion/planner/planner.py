@@ -70,6 +70,8 @@ from companion.planner.sensors import (
     sector_fan_flu,
 )
 from companion.planner.sight import (
+    describe_sweep,
+    forward_depression_rad,
     layout_speed_limit_mps,
     sweep_amplitude_rad,
     wall_flag_distance_m,
@@ -419,10 +421,10 @@ class Planner:
         self._sweep_phase = 0.0
         # How far off the path the swing takes the forward surface sensor's ground hits,
         # per metre of H_d over level ground (`_surface_pitch`): 0 without a swing.
-        fwd = sensors.specs[sensors.surface_index[Group.SURFACE_FORWARD]].boresight_flu
-        down = -float(fwd[2])
-        ahead = math.hypot(float(fwd[0]), float(fwd[1])) / down if down > 1e-9 else 0.0
-        self._swing_offset_per_h_d = ahead * math.sin(self._sweep_amplitude)
+        depression = forward_depression_rad(sensors)
+        self._swing_offset_per_h_d = (
+            math.sin(self._sweep_amplitude) / math.tan(depression) if depression > 0.0 else 0.0
+        )
         self._climb = 0.0  # X_d's vertical speed at rest (`_climb_at_rest`), m/s
         self._settling = False  # ... and whether it is on its way to H_d there
         self._scan_held_s = 0.0
@@ -532,11 +534,9 @@ class Planner:
         self._search_units = 0
         events: list[str] = []
         if self._cycle == 1 and self._sweep_amplitude > 0.0:
-            swing = math.degrees(self._sweep_amplitude)
-            events.append(
-                f"sensor layout leaves a {2.0 * swing:.0f} deg gap ahead: the heading swings "
-                f"{swing:.0f} deg either way over {params.yaw_sweep_period_m:g} m of travel"
-            )
+            gap = math.degrees(2.0 * self._sweep_amplitude)
+            sweep = describe_sweep(self._sweep_amplitude, params.yaw_sweep_period_m)
+            events.append(f"sensor layout leaves a {gap:.0f} deg gap ahead: {sweep}")
 
         # Eqs (1)-(2): world points of every reading.
         rot = r_g(state.roll_rad, state.pitch_rad, state.yaw_rad)
@@ -814,8 +814,9 @@ class Planner:
         the sensors' lines)."""
         xd, yd, zd = self._xd_prev_xyz
         heading = self._path_heading()
-        qx = xd + _SURFACE_AHEAD_M * math.cos(heading)
-        qy = yd + _SURFACE_AHEAD_M * math.sin(heading)
+        cos_h, sin_h = math.cos(heading), math.sin(heading)
+        qx = xd + _SURFACE_AHEAD_M * cos_h
+        qy = yd + _SURFACE_AHEAD_M * sin_h
         store = self._ground_store
         # Every point within H_d of q, or of a point within _SURFACE_SNAP_M of q.
         # (Swinging, the forward sensor's hits lie up to its swing's offset off the line.)
@@ -826,7 +827,7 @@ class Planner:
         px, py, pz = points[k].tolist() if k >= 0 else (qx, qy, math.nan)
         run = math.hypot(px - xd, py - yd)
         # (ahead of X_d along the heading: a swing's hit can lie off the line beside X_d)
-        ahead = (px - xd) * math.cos(heading) + (py - yd) * math.sin(heading)
+        ahead = (px - xd) * cos_h + (py - yd) * sin_h
         if k >= 0 and r2q[k] <= snap * snap and min(run, ahead) >= 0.5 * _SURFACE_AHEAD_M:
             dx = points[:, 0] - px
             dy = points[:, 1] - py

@@ -41,12 +41,18 @@ SWEEP_AMPLITUDE_MAX_RAD = math.radians(30.0)
 surface sensors' ground points leave the path's line by more than half H_d."""
 
 
+def forward_depression_rad(sensors: SensorTable) -> float:
+    """How far below the horizontal the forward surface sensor looks, radians (<= 0: it
+    does not look down): over level ground at height h it lands h / tan(this) ahead."""
+    fwd = sensors.specs[sensors.surface_index[Group.SURFACE_FORWARD]].boresight_flu
+    return -math.atan2(float(fwd[2]), math.hypot(float(fwd[0]), float(fwd[1])))
+
+
 def wall_flag_distance_m(sensors: SensorTable, h_d_m: float, threshold_rad: float) -> float:
     """Horizontal distance ahead at which the layout first flags a vertical wall across the
     path as steeper than threshold_rad, flying level at H_d over flat ground. 0 if it never
     does (no forward-looking obstacle sensor, or no forward surface reading to pair with)."""
-    fwd = sensors.specs[sensors.surface_index[Group.SURFACE_FORWARD]].boresight_flu
-    depression = -math.atan2(float(fwd[2]), math.hypot(float(fwd[0]), float(fwd[1])))
+    depression = forward_depression_rad(sensors)
     if depression <= 0.0:
         return 0.0
     ground_ahead = h_d_m / math.tan(depression)  # g: where the forward surface ray lands
@@ -142,6 +148,13 @@ def sweep_amplitude_rad(sensors: SensorTable) -> float:
         return 0.0
     lo, hi = gaps[0]
     return min(0.5 * math.radians(hi - lo), SWEEP_AMPLITUDE_MAX_RAD)
+
+
+def describe_sweep(amplitude_rad: float, period_m: float) -> str:
+    """The yaw sweep for a person: "the heading swings A deg either way over P m of
+    travel" (`sweep_amplitude_rad`, `PlannerParams.yaw_sweep_period_m`)."""
+    swing = math.degrees(amplitude_rad)
+    return f"the heading swings {swing:.0f} deg either way over {period_m:g} m of travel"
 
 
 def describe_level_gaps(sensors: SensorTable) -> str:
