@@ -1,5 +1,7 @@
 """ObstacleMemory: binning, bounds, inflation and the change counters."""
 
+import math
+
 import numpy as np
 
 from companion.planner.memory import ObstacleMemory
@@ -180,6 +182,26 @@ def test_a_reach_is_bounded_by_rays_that_pass_below_its_height() -> None:
     q = p + np.array([0.1, 0.0, 0.0])
     mem.add(q, 3, np.array([0.3]), np.array([np.nan]), np.array([2.0]), np.array([2.0]))
     assert np.allclose(mem.inflation_m(), [0.3 + 0.2])
+
+
+def test_a_reach_is_bounded_by_a_ray_from_afar_only_where_it_comes_near() -> None:
+    """A ray from 30 m away bounds a reach only when its free stretch comes within the
+    current bound of the point: the cheap test that skips far points (`bound_reach`) lets
+    through every ray that the full one would use."""
+    mem = ObstacleMemory(0.25, 60.0, 64)
+    p = np.array([[5.0, 0.0, 5.0]])
+    for cycle in (1, 2):
+        mem.add(p, cycle, np.array([0.3]), np.array([np.nan]), np.array([2.0]), np.array([2.0]))
+    west = np.array([[-1.0, 0.0, 0.0]])
+    origin = np.array([35.0, 1.0, 2.2])  # the ray passes 1.0 m from the point
+    assert mem.bound_reach(origin, west, np.array([30.0]), 0.3) == 1
+    assert np.allclose(mem.inflation_m(), [0.3 + 1.0])
+    origin = np.array([35.0, 0.5, 2.2])  # 0.5 m from it, but its stretch ends 1.0 m short:
+    assert mem.bound_reach(origin, west, np.array([29.0]), 0.3) == 0  # 1.12 m at the least
+    assert np.allclose(mem.inflation_m(), [0.3 + 1.0])
+    # ends 0.3 m short: 0.58 m from the point, within the bound of 1.0 m
+    assert mem.bound_reach(origin, west, np.array([29.7]), 0.3) == 1
+    assert np.allclose(mem.inflation_m(), [0.3 + math.hypot(0.3, 0.5)])
 
 
 def test_a_reach_takes_the_steepest_slope_measured_near_its_point() -> None:

@@ -454,8 +454,9 @@ class ObstacleMemory:
         return int(far.sum())
 
     def has_reach(self) -> bool:
-        """Whether any remembered point has a reach (`bound_reach` has work to do)."""
-        return bool((self._reach > 0.0).any())
+        """Whether any remembered point has a reach that `bound_reach` could still lower
+        (it has work to do)."""
+        return bool(np.count_nonzero(np.minimum(self._reach, self._bound) > _REACH_STEP_M))
 
     def bound_reach(
         self,
@@ -471,15 +472,19 @@ class ObstacleMemory:
         d at that height, and the point's bound becomes at most d. Its inflation becomes
         the inflation without the reach, plus the reach up to the bound (lowered in steps
         of at least _REACH_STEP_M). Returns how many inflations were lowered."""
-        reach = self._reach
         # Only a reach kept above _REACH_STEP_M can be lowered by a step (free slots: 0).
-        live = np.minimum(reach, self._bound) > _REACH_STEP_M
-        if len(free_m) == 0 or not live.any():
+        slots = (np.minimum(self._reach, self._bound) > _REACH_STEP_M).nonzero()[0]
+        if len(free_m) == 0 or len(slots) == 0:
             return 0
-        slots = np.flatnonzero(live)
         o = np.asarray(origin_enu, dtype=np.float64).reshape(3)
-        dirs = np.asarray(directions_enu, dtype=np.float64).reshape(-1, 3)
         length = np.asarray(free_m, dtype=np.float64).reshape(1, -1)
+        # A ray's stretch lies within its length of the origin horizontally: a point farther
+        # than that plus its bound (and a margin far above rounding) cannot be tightened.
+        rel = self._xyz[slots, :2] - o[:2]  # (k, 2)
+        far = self._bound[slots] + (max(length[0].tolist()) + 1e-6)
+        if np.count_nonzero(rel[:, 0] * rel[:, 0] + rel[:, 1] * rel[:, 1] <= far * far) == 0:
+            return 0
+        dirs = np.asarray(directions_enu, dtype=np.float64).reshape(-1, 3)
         # Each ray's stretch [lo, hi] (metres along it) at most the ceiling high, per point.
         ceiling = (self._reach_z[slots] + tolerance_m - o[2])[:, None]  # (k, 1)
         dz = dirs[:, 2][None, :]  # (1, n)
@@ -491,7 +496,6 @@ class ObstacleMemory:
         lo = np.where(falling, np.maximum(0.0, cross), 0.0)
         seen = (lo <= hi) & (hi >= 0.0)
         # Horizontal distance from each point to each stretch.
-        rel = self._xyz[slots, :2] - o[:2]  # (k, 2)
         dxy = dirs[:, :2]  # (n, 2)
         dxy_sq = (dxy * dxy).sum(axis=1)[None, :]  # (1, n)
         along = np.clip((rel @ dxy.T) / np.maximum(dxy_sq, 1e-12), lo, np.maximum(lo, hi))

@@ -823,7 +823,7 @@ class Planner:
         snap = _SURFACE_SNAP_M + self._h_d * self._swing_offset_per_h_d
         points, r2q = store.near(qx, qy, self._h_d + snap)
         floor_q = floor_z(points[:, 2], r2q, self._h_d)
-        k = int(np.argmin(r2q)) if len(r2q) else -1
+        k = int(r2q.argmin()) if len(r2q) else -1
         px, py, pz = points[k].tolist() if k >= 0 else (qx, qy, math.nan)
         run = math.hypot(px - xd, py - yd)
         # (ahead of X_d along the heading: a swing's hit can lie off the line beside X_d)
