@@ -8,15 +8,20 @@ import sys
 import time
 from pathlib import Path
 
-from bench import arc, planner, raycast, service, simulator, sweep
+from bench import arc, instructions, planner, raycast, service, simulator, sweep
 from bench.report import Section, machine, table, write_results
 
-NAMES = ("planner", "arc", "simulator", "raycast", "service", "sweep")
+NAMES = ("planner", "instructions", "arc", "simulator", "raycast", "service", "sweep")
+"""`--quick` leaves out "instructions" (valgrind: about a minute) unless `--only` names it."""
 
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m bench", description=__doc__)
-    parser.add_argument("--quick", action="store_true", help="fewer repeats (a smoke run)")
+    parser.add_argument(
+        "--quick",
+        action="store_true",
+        help="fewer repeats (a smoke run); leaves out 'instructions' unless --only names it",
+    )
     parser.add_argument("--only", nargs="+", choices=NAMES, help="run only these benchmarks")
     parser.add_argument(
         "--out",
@@ -26,6 +31,8 @@ def main(argv: list[str] | None = None) -> int:
     )
     args = parser.parse_args(argv)
     only = set(args.only or NAMES)
+    if args.quick and not args.only:
+        only.discard("instructions")
     quick = args.quick
     meta = machine()
     started = time.perf_counter()
@@ -39,6 +46,9 @@ def main(argv: list[str] | None = None) -> int:
     sec, flight = planner.run(runs=1 if quick else 3, replays=10 if quick else 100)
     if "planner" in only:
         sections.append(sec)
+    if "instructions" in only:
+        log("planner instructions per cycle under valgrind (the paper flight replayed)")
+        sections.append(instructions.run(flight, cycles=200 if quick else 1000))
     if "arc" in only:
         log("arc-length stepping")
         sections.append(arc.run(flight, max_iterations=50_000 if quick else 400_000))
@@ -57,7 +67,7 @@ def main(argv: list[str] | None = None) -> int:
         sections.append(sweep.run(quick))
     meta["wall_s"] = round(time.perf_counter() - started, 1)
     meta["quick"] = quick
-    if only == set(NAMES):
+    if only >= set(NAMES) - ({"instructions"} if quick else set()):
         run_sec = Section("this run")
         run_sec.add(
             "bench.wall_s",

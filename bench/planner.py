@@ -23,25 +23,25 @@ from __future__ import annotations
 import copy
 import os
 import time
+from collections.abc import Callable
 from concurrent.futures import ProcessPoolExecutor
 
 import numpy as np
 
 from bench.flight import Flight, fly, load, replay_min, scenario_names, split
 from bench.report import Section, percentiles_us
-from companion.planner import SEARCH_BUDGET_UNITS, SEARCH_BUDGET_UNITS_AT_REST
+from companion.planner import SEARCH_BUDGET_UNITS, SEARCH_BUDGET_UNITS_AT_REST, VehicleState
 from companion.planner.decision import decide, steepness, thresholds
 from companion.planner.rotations import r_g
 from companion.planner.sensors import SURFACE_FOR_GROUP, Group, range_points_world
+from companion.planner.types import FloatArray
 from companion.sim.scenario import Scenario
 
 
-def equations_floor_us(scenario: Scenario, flight: Flight, replays: int = 5) -> float:
-    """Median over the flight's cycles of the least of `replays` timings of the paper's
-    equations alone on that cycle's recorded inputs: eqs (1)-(2) for every reading, eq. (6)
-    for every obstacle reading against its group's surface point, eq. (7)'s decision.
-    Microseconds."""
-    clock = time.perf_counter_ns
+def paper_equations(scenario: Scenario) -> Callable[[VehicleState, FloatArray], object]:
+    """One cycle of the paper's equations alone on a state and its ranges: eqs (1)-(2) for
+    every reading, eq. (6) for every obstacle reading against its group's surface point,
+    eq. (7)'s decision (the floor the planner's step is compared with)."""
     sensors = scenario.sensor_table()
     params = scenario.params()
     obs = sensors.obstacle_index
@@ -54,14 +54,26 @@ def equations_floor_us(scenario: Scenario, flight: Flight, replays: int = 5) -> 
         dtype=np.intp,
     )
     limit = thresholds(sensors.obstacle_groups, params)
+
+    def cycle(state: VehicleState, ranges: FloatArray) -> object:
+        rot = r_g(state.roll_rad, state.pitch_rad, state.yaw_rad)
+        valid = sensors.valid(ranges)
+        points = range_points_world(state.position_enu, rot, sensors.boresights_flu, ranges)
+        return decide(steepness(points[obs], points[ground_rows], valid[obs]), limit)
+
+    return cycle
+
+
+def equations_floor_us(scenario: Scenario, flight: Flight, replays: int = 5) -> float:
+    """Median over the flight's cycles of the least of `replays` timings of the paper's
+    equations alone (`paper_equations`) on that cycle's recorded inputs. Microseconds."""
+    clock = time.perf_counter_ns
+    equations = paper_equations(scenario)
     best = np.full(flight.cycles, np.iinfo(np.int64).max, dtype=np.int64)
     for _ in range(replays):
         for k, (state, ranges) in enumerate(zip(flight.states, flight.ranges, strict=True)):
             t0 = clock()
-            rot = r_g(state.roll_rad, state.pitch_rad, state.yaw_rad)
-            valid = sensors.valid(ranges)
-            points = range_points_world(state.position_enu, rot, sensors.boresights_flu, ranges)
-            decide(steepness(points[obs], points[ground_rows], valid[obs]), limit)
+            equations(state, ranges)
             best[k] = min(best[k], clock() - t0)
     return float(np.median(best)) / 1e3
 
