@@ -126,7 +126,7 @@ class FreeFans:
         bool."""
         p = np.asarray(points_enu, dtype=np.float64).reshape(-1, 3)
         out = np.zeros(len(p), dtype=bool)
-        rows = np.flatnonzero(self._used)
+        rows = self._used.nonzero()[0]
         if len(p) == 0 or len(rows) == 0:
             return out
         tol = self._tol

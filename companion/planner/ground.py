@@ -137,7 +137,7 @@ class GroundPoints:
         dy = xyz[:, 1] - y
         r2 = dx * dx + dy * dy
         inside = r2 <= radius_m * radius_m
-        return xyz[inside], r2[inside]
+        return xyz.compress(inside, axis=0), r2[inside]
 
     def _rebase(self, x: float, y: float) -> None:
         """Move the local origin to (x, y) and recompute the stored rows."""
@@ -153,7 +153,7 @@ class GroundPoints:
         u = rows[:, 1] - (x - self._ox)
         v = rows[:, 2] - (y - self._oy)
         near = u * u + v * v <= radius_m * radius_m
-        a = rows[near]
+        a = rows.compress(near, axis=0)
         n = len(a)
         if n < _MIN_POINTS:
             return None
@@ -211,6 +211,7 @@ def carry_to_heading(
     return along, gx * (xd + along * c - x) + gy * (yd + along * s - y)
 
 
+_MAX = np.maximum.reduce  # (ndarray.max's Python layer costs more than the reduction here)
 _RING_FRACTIONS = np.repeat(np.array([0.0, 0.25, 0.5, 0.75, 0.95]), 16)
 _RING_ANGLES = np.tile(np.linspace(0.0, 2.0 * math.pi, 16, endpoint=False), 5)
 _RING_COS = np.cos(_RING_ANGLES)
@@ -241,7 +242,7 @@ def fit_floor_z(fit: GroundFit, x: float, y: float, h_d_m: float) -> float:
     The rings' offsets and rises depend on h_d_m alone (`_rings`)."""
     east, north, rise = _rings(h_d_m)
     z = fit.heights(x + east, y + north)
-    return float((z + rise).max())
+    return float(_MAX(z + rise))
 
 
 def floor_z(z: FloatArray, r2: FloatArray, h_d_m: float) -> float:
@@ -259,4 +260,4 @@ def floor_z(z: FloatArray, r2: FloatArray, h_d_m: float) -> float:
     room = h_d_m * h_d_m - r2
     need = z + np.sqrt(np.maximum(room, 0.0))
     need[room <= 0.0] = -math.inf
-    return float(need.max())
+    return float(_MAX(need))

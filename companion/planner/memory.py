@@ -442,13 +442,13 @@ class ObstacleMemory:
         xy = self.points_xy()
         d = np.hypot(xy[:, 0] - position_xy[0], xy[:, 1] - position_xy[1])
         far = d > self.radius_m
-        if not far.any():
+        if not np.count_nonzero(far):
             self._far_check = (x, y, self.radius_m - float(d.max()))
             return 0
         kept = d[~far]
         self._far_check = (x, y, self.radius_m - float(kept.max())) if len(kept) else None
         keys = list(self._cells)
-        self._drop_slots([self._cells.pop(keys[i]) for i in np.flatnonzero(far).tolist()])
+        self._drop_slots([self._cells.pop(keys[i]) for i in far.nonzero()[0].tolist()])
         self._changed()
         self.generation += 1
         return int(far.sum())
@@ -503,7 +503,7 @@ class ObstacleMemory:
         ey = rel[:, 1:2] - along * dxy[None, :, 1]
         d = np.where(seen, np.sqrt(ex * ex + ey * ey), np.inf).min(axis=1)
         tighter = d < self._bound[slots]
-        if not tighter.any():
+        if not np.count_nonzero(tighter):
             return 0
         slots, d = slots[tighter], d[tighter]
         self._bound[slots] = d
@@ -512,7 +512,7 @@ class ObstacleMemory:
         lower = (now - new >= _REACH_STEP_M) | (
             (new - self._base[slots] < _REACH_STEP_M) & (now > new)
         )
-        if not lower.any():
+        if not np.count_nonzero(lower):
             return 0
         version = self.version
         for slot, e in zip(slots[lower].tolist(), new[lower].tolist(), strict=True):
@@ -540,11 +540,11 @@ class ObstacleMemory:
         if not self._cells or len(free_m) == 0:
             return 0
         slots = self._cell_slots()
-        rel = self._xyz[slots] - np.asarray(origin_enu, dtype=np.float64)
+        rel = self._xyz.take(slots, axis=0) - np.asarray(origin_enu, dtype=np.float64)
         # Only points within the longest reading can be carved: the rest is skipped cheaply
         # (this runs every cycle in motion).
         reach = float(np.max(free_m)) + tolerance_m
-        near = np.flatnonzero((rel * rel).sum(axis=1) < reach * reach)
+        near = ((rel * rel).sum(axis=1) < reach * reach).nonzero()[0]
         if len(near) == 0:
             return 0
         rel = rel[near]
@@ -590,7 +590,7 @@ class ObstacleMemory:
         if not self._cells or len(free_m) == 0:
             return 0
         slots = self._cell_slots()
-        rel = self._xyz[slots] - np.asarray(origin_enu, dtype=np.float64)
+        rel = self._xyz.take(slots, axis=0) - np.asarray(origin_enu, dtype=np.float64)
         dirs = np.asarray(directions_enu, dtype=np.float64).reshape(-1, 3)
         along = rel @ dirs.T  # (k, n): distance along each ray
         off_sq = (rel * rel).sum(axis=1)[:, None] - along * along
@@ -603,7 +603,7 @@ class ObstacleMemory:
     ) -> int:
         """Drop the points (memory slots) that a carve found inside free space, but those with
         a neighbour within support_m that stays. Returns how many were dropped."""
-        gone = np.flatnonzero(through)
+        gone = through.nonzero()[0]
         if len(gone) and support_m > 0.0 and not through.all():
             pts = self._xyz[slots]
             others = pts[~through]

@@ -566,7 +566,7 @@ class Planner:
         obs = self.sensors.obstacle_index
         detected = valid[obs]
         ground = self._ground_points(points, surface, state)
-        phi_star = steepness(points[obs], ground, detected)
+        phi_star = steepness(points.take(obs, axis=0), ground, detected)
         steep_xyz, steep_columns = self._steep_points(
             points, pts, valid, valid_list, detected, ground, phi_star
         )
@@ -922,10 +922,10 @@ class Planner:
         """X_hj paired with each obstacle sensor (eq. 6); when the group's surface reading is
         missing, the forward one, else the point H_d below the vehicle."""
         if len(surface) == len(self.sensors.surface_index):
-            every: FloatArray = points[self._ground_rows_all]
+            every: FloatArray = points.take(self._ground_rows_all, axis=0)
             return every
         rows = [surface.get(SURFACE_FOR_GROUP[group], -1) for group in self._obstacle_groups]
-        out: FloatArray = points[rows]
+        out: FloatArray = points.take(rows, axis=0)
         missing = [k for k, idx in enumerate(rows) if idx < 0]
         if missing:
             fallback_idx = surface.get(Group.SURFACE_FORWARD)
@@ -1014,7 +1014,7 @@ class Planner:
         # and the group's ground height (inf for a surface row), then the inflation.
         cloud_rows = {r: j for j, r in enumerate(rows)}
         ground_points = ground.tolist()
-        xyz = points[steep_rows]
+        xyz = points.take(steep_rows, axis=0)
         lows: list[list[float]] = []
         for r in steep_rows:
             k = self._obstacle_position.get(r)
@@ -1070,10 +1070,10 @@ class Planner:
         rows = self._steep_rows
         fov = self.sensors.fov_rad[rows]
         sector = fov > 0.0
-        if not sector.any():
+        if not np.count_nonzero(sector):
             return xyz, columns
         arcs: list[FloatArray] = []
-        which = np.flatnonzero(sector)
+        which = sector.nonzero()[0]
         for k in which:
             i = int(rows[k])
             r = float(ranges[i])
@@ -1246,7 +1246,7 @@ class Planner:
         memory `version`."""
         params = self.params
         trigger = params.d_min_m + 0.5 * params.clearance_margin_m
-        close = [i + start for i in np.flatnonzero(values < trigger).tolist()]
+        close = [i + start for i in (values < trigger).nonzero()[0].tolist()]
         return _ClearanceCache(version, samples, start, start + len(values), values, close, box)
 
     def _update_path(
@@ -1544,7 +1544,7 @@ class Planner:
         trigger = self.params.d_min_m + 0.5 * self.params.clearance_margin_m
         if look.clearance is None or len(look.s) == 0 or look.clearance[0] >= trigger:
             return None
-        inside = np.flatnonzero(look.clearance < trigger)
+        inside = (look.clearance < trigger).nonzero()[0]
         end = int(inside[-1]) + 1
         return look.s[:end].copy(), look.clearance[:end].copy()
 
@@ -1627,27 +1627,27 @@ class Planner:
         use = (valid | nothing) & (free > 0.0)
         sector = sensors.fov_rad > 0.0
         cone = use & sector
-        if cone.any():
+        if np.count_nonzero(cone):
             # A sector reading is the nearest object anywhere across the sector: nothing is
             # nearer in all of it, so its whole width is free up to the reading.
             fan_args = (
                 state.position_enu,
                 rot[:, 2],
-                sensors.boresights_flu[cone] @ rot.T,
+                sensors.boresights_flu.compress(cone, axis=0) @ rot.T,
                 0.5 * sensors.fov_rad[cone],
                 free[cone],
             )
             if self._free_fans is not None:
                 self._free_fans.add(*fan_args, state.yaw_rad)
-        if not use.any() or len(self._memory) == 0:
+        if not np.count_nonzero(use) or len(self._memory) == 0:
             return
         beam = use & ~sector
-        if beam.any() and not moving:
-            dirs = sensors.boresights_flu[beam] @ rot.T
+        if np.count_nonzero(beam) and not moving:
+            dirs = sensors.boresights_flu.compress(beam, axis=0) @ rot.T
             self._memory.carve(
                 state.position_enu, dirs, free[beam], _CARVE_TOLERANCE_M, _CARVE_SUPPORT_M
             )
-        if cone.any() and len(self._memory):
+        if np.count_nonzero(cone) and len(self._memory):
             # That carves across the sector's width (a reading's arc, entered from farther
             # away, is over-wide once seen from nearer).
             self._memory.carve_sectors(*fan_args, _CARVE_TOLERANCE_M, _CARVE_SUPPORT_M)
@@ -1669,9 +1669,9 @@ class Planner:
         nothing = ~valid & ((r == 0.0) | (r >= sensors.max_range_m))
         free = np.where(valid, r - _REACH_FREE_SHORT_M, np.where(nothing, sensors.max_range_m, 0.0))
         use = (valid | nothing) & (free > 0.0)
-        if not use.any():
+        if not np.count_nonzero(use):
             return
-        dirs = sensors.boresights_flu[use] @ rot.T
+        dirs = sensors.boresights_flu.compress(use, axis=0) @ rot.T
         self._memory.bound_reach(state.position_enu, dirs, free[use], _REACH_HEIGHT_TOLERANCE_M)
 
     def _vehicle_ahead_m(self, position_enu: FloatArray, heading: float) -> float:

@@ -12,8 +12,6 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 
-import numpy as np
-
 from companion.planner.types import FloatArray
 
 STOPPED_MPS = 1e-3
@@ -113,7 +111,7 @@ def clearance_limit(
     limit = replan_distance_m
     if not stop_at_band:
         limit = min(limit, float(clearance_m[0]) - _STOP_SHORT_M)
-    too_close = np.flatnonzero(clearance_m < limit)
+    too_close = (clearance_m < limit).nonzero()[0]
     if len(too_close) == 0:
         return math.inf
     short = _STOP_SHORT_M + max(allowance_m, 0.0)
