@@ -8,9 +8,11 @@ import pytest
 
 import companion.planner.avoidance as avoidance
 import companion.planner.decision as decision
+import companion.planner.path as path
 from companion.planner.bezier import CubicBezier, segment_through
 from companion.planner.memory import ObstacleMemory
 from companion.planner.path import Path
+from companion.planner.route import Route
 
 
 def _array_chords(points: np.ndarray, min_separation_m: float) -> tuple[np.ndarray, np.ndarray]:
@@ -217,3 +219,25 @@ def test_min_distance_is_the_distance_to_the_nearest_inflated_disc() -> None:
         assert avoidance.min_distance(samples, points).tobytes() == plain.min(axis=1).tobytes()
         expected = (plain - inflation[None, :]).min(axis=1)
         assert avoidance.min_distance(samples, points, inflation).tobytes() == expected.tobytes()
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_nearest_samples_in_groups_equal_the_search_over_every_sample(seed: int) -> None:
+    """`path._nearest_samples` (points in groups, each against its own box's samples) gives
+    every point the index of the whole search: the nearest sample, the first of equally
+    near ones (some points lie on samples, some midway between two)."""
+    rng = np.random.default_rng(seed)
+    route = Route(np.array([[0.0, 0.0], [40.0, 5.0], [55.0, 40.0], [10.0, 60.0]]), 0.2, 2.5)
+    samples = route.polyline().points
+    for n in (1, path._GROUP, path._GROUP + 1, 4 * path._GROUP + 17):
+        along = samples[rng.integers(len(samples), size=n)]
+        points = along + rng.normal(size=(n, 2)) * float(rng.choice([0.5, 4.0, 20.0]))
+        if n > 1:
+            points[: n // 3] = np.round(points[: n // 3] * 4.0) / 4.0
+            points[n // 3 : n // 2] = samples[rng.integers(len(samples), size=n // 2 - n // 3)]
+            k = rng.integers(len(samples) - 1, size=n - n // 2)
+            points[n // 2 :] = 0.5 * (samples[k] + samples[k + 1])
+        dx = points[:, 0, None] - samples[None, :, 0]
+        dy = points[:, 1, None] - samples[None, :, 1]
+        every = np.argmin(dx * dx + dy * dy, axis=1)  # the first of equal minima
+        assert path._nearest_samples(samples, points).tolist() == every.tolist()

@@ -162,15 +162,50 @@ def project(poly: Polyline, points_xy: FloatArray) -> tuple[FloatArray, FloatArr
     q = np.asarray(points_xy, dtype=np.float64).reshape(-1, 2)
     if len(q) == 0:
         return np.empty(0), np.empty(0)
-    near = _candidates(poly.points, q)
-    dx = q[:, 0, None] - poly.points[None, near, 0]
-    dy = q[:, 1, None] - poly.points[None, near, 1]
-    j = near[np.argmin(dx * dx + dy * dy, axis=1)]
+    j = _nearest_samples(poly.points, q)
     rel = q - poly.points[j]
     along = np.einsum("ij,ij->i", rel, poly.tangents[j])
     lateral = np.einsum("ij,ij->i", rel, poly.normals[j])
     s = np.clip(poly.s[j] + along, poly.s[0], poly.s[-1])
     return s, lateral
+
+
+_GROUP = 128
+"""Points whose nearest samples are searched together (`_nearest_samples`)."""
+
+
+def _nearest_samples(samples_xy: FloatArray, points_xy: FloatArray) -> NDArray[np.intp]:
+    """The index of the sample nearest each point (the lowest of equally near ones), (k,).
+
+    Many points spread along a long path (the memory's, for a correction) are taken in
+    groups of _GROUP, in the order of their nearest every-8th sample: each group's box and
+    candidates (`_candidates`) stay small, where one box round all of them spans the path
+    (637 points against 257 candidate samples: 4-6 ms in one search's set-up, 1.2 ms in
+    groups). Every sample as near to a point as its nearest lies within its group's box
+    grown by the bound (the point lies in the box), so each point gets the same index, from
+    the same distances, as from all the samples at once."""
+    if len(points_xy) <= _GROUP:
+        return _nearest_among(samples_xy, points_xy, _candidates(samples_xy, points_xy))
+    coarse = samples_xy[::8]
+    dx = points_xy[:, 0, None] - coarse[None, :, 0]
+    dy = points_xy[:, 1, None] - coarse[None, :, 1]
+    order = np.argsort((dx * dx + dy * dy).argmin(axis=1), kind="stable")
+    out = np.empty(len(points_xy), dtype=np.intp)
+    for start in range(0, len(order), _GROUP):
+        rows = order[start : start + _GROUP]
+        group = points_xy.take(rows, axis=0)
+        out[rows] = _nearest_among(samples_xy, group, _candidates(samples_xy, group))
+    return out
+
+
+def _nearest_among(
+    samples_xy: FloatArray, points_xy: FloatArray, near: NDArray[np.intp]
+) -> NDArray[np.intp]:
+    """The nearest of the candidate samples `near` (ascending) to each point, (k,)."""
+    dx = points_xy[:, 0, None] - samples_xy[None, near, 0]
+    dy = points_xy[:, 1, None] - samples_xy[None, near, 1]
+    nearest: NDArray[np.intp] = near[np.argmin(dx * dx + dy * dy, axis=1)]
+    return nearest
 
 
 def _candidates(samples_xy: FloatArray, points_xy: FloatArray) -> NDArray[np.intp]:
