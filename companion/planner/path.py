@@ -171,30 +171,38 @@ def project(poly: Polyline, points_xy: FloatArray) -> tuple[FloatArray, FloatArr
 
 
 _GROUP = 128
-"""Points whose nearest samples are searched together (`_nearest_samples`)."""
+"""Points whose nearest samples are searched together (`_nearest_samples`)..."""
+_ONE_BOX_MAX = 16384
+"""... once one box round all the points leaves more than this many point-sample pairs."""
 
 
 def _nearest_samples(samples_xy: FloatArray, points_xy: FloatArray) -> NDArray[np.intp]:
     """The index of the sample nearest each point (the lowest of equally near ones), (k,).
 
-    Many points spread along a long path (the memory's, for a correction) are taken in
-    groups of _GROUP, in the order of their nearest every-8th sample: each group's box and
-    candidates (`_candidates`) stay small, where one box round all of them spans the path
-    (637 points against 257 candidate samples: 4-6 ms in one search's set-up, 1.2 ms in
-    groups). Every sample as near to a point as its nearest lies within its group's box
-    grown by the bound (the point lies in the box), so each point gets the same index, from
-    the same distances, as from all the samples at once."""
-    if len(points_xy) <= _GROUP:
-        return _nearest_among(samples_xy, points_xy, _candidates(samples_xy, points_xy))
+    Every 8th sample bounds each point's distance to the polyline from above, so the nearest
+    samples lie in the points' bounding box grown by the largest of those bounds
+    (`_candidates`). Many points spread along a long path (the memory's, for a correction)
+    make that box span the path: then they are taken in groups of _GROUP, in the order of
+    their nearest every-8th sample, each with its own box (637 points against 257 candidate
+    samples: 4-6 ms in one search's set-up, 1.2 ms in groups). Every sample as near to a
+    point as its nearest lies within its group's box too, so each point gets the same index,
+    from the same distances, as from all the samples at once."""
     coarse = samples_xy[::8]
     dx = points_xy[:, 0, None] - coarse[None, :, 0]
     dy = points_xy[:, 1, None] - coarse[None, :, 1]
-    order = np.argsort((dx * dx + dy * dy).argmin(axis=1), kind="stable")
+    d2 = dx * dx + dy * dy
+    bound2 = d2.min(axis=1)
+    near = _candidates(samples_xy, points_xy, bound2)
+    if len(points_xy) <= _GROUP or len(near) * len(points_xy) <= _ONE_BOX_MAX:
+        return _nearest_among(samples_xy, points_xy, near)
+    order = np.argsort(d2.argmin(axis=1), kind="stable")
     out = np.empty(len(points_xy), dtype=np.intp)
     for start in range(0, len(order), _GROUP):
         rows = order[start : start + _GROUP]
         group = points_xy.take(rows, axis=0)
-        out[rows] = _nearest_among(samples_xy, group, _candidates(samples_xy, group))
+        out[rows] = _nearest_among(
+            samples_xy, group, _candidates(samples_xy, group, bound2.take(rows))
+        )
     return out
 
 
@@ -208,16 +216,14 @@ def _nearest_among(
     return nearest
 
 
-def _candidates(samples_xy: FloatArray, points_xy: FloatArray) -> NDArray[np.intp]:
-    """Indices (ascending) of the samples that can be the nearest to one of the points.
-
-    Every 8th sample bounds each point's distance to the polyline from above, so the nearest
-    sample lies in the points' bounding box grown by the largest of those bounds; on a long
-    path that leaves out most samples before the (k, n) distances are formed."""
-    coarse = samples_xy[::8]
-    dx = points_xy[:, 0, None] - coarse[None, :, 0]
-    dy = points_xy[:, 1, None] - coarse[None, :, 1]
-    reach = math.sqrt(float((dx * dx + dy * dy).min(axis=1).max())) * (1.0 + 1e-9) + 1e-9
+def _candidates(
+    samples_xy: FloatArray, points_xy: FloatArray, bound2: FloatArray
+) -> NDArray[np.intp]:
+    """Indices (ascending) of the samples that can be the nearest to one of the points:
+    those in the points' bounding box grown by the largest of bound2 (k,), each point's
+    squared distance to a sample (m^2); on a long path that leaves out most samples before
+    the (k, n) distances are formed."""
+    reach = math.sqrt(float(bound2.max())) * (1.0 + 1e-9) + 1e-9
     lo = points_xy.min(axis=0) - reach
     hi = points_xy.max(axis=0) + reach
     return np.flatnonzero(np.all((samples_xy >= lo) & (samples_xy <= hi), axis=1))
