@@ -456,7 +456,13 @@ class ObstacleMemory:
     def has_reach(self) -> bool:
         """Whether any remembered point has a reach that `bound_reach` could still lower
         (it has work to do)."""
-        return bool(np.count_nonzero(np.minimum(self._reach, self._bound) > _REACH_STEP_M))
+        return bool(np.count_nonzero(self._reach_live()))
+
+    def _reach_live(self) -> BoolArray:
+        """Per slot: a reach kept above _REACH_STEP_M, which only `bound_reach` can lower by
+        a step (free slots: no)."""
+        live: BoolArray = np.minimum(self._reach, self._bound) > _REACH_STEP_M
+        return live
 
     def bound_reach(
         self,
@@ -472,8 +478,7 @@ class ObstacleMemory:
         d at that height, and the point's bound becomes at most d. Its inflation becomes
         the inflation without the reach, plus the reach up to the bound (lowered in steps
         of at least _REACH_STEP_M). Returns how many inflations were lowered."""
-        # Only a reach kept above _REACH_STEP_M can be lowered by a step (free slots: 0).
-        slots = (np.minimum(self._reach, self._bound) > _REACH_STEP_M).nonzero()[0]
+        slots = self._reach_live().nonzero()[0]
         if len(free_m) == 0 or len(slots) == 0:
             return 0
         o = np.asarray(origin_enu, dtype=np.float64).reshape(3)
