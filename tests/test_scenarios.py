@@ -23,11 +23,17 @@ def flown(request: pytest.FixtureRequest) -> tuple:  # type: ignore[type-arg]
     return scenario, m, result
 
 
+KNOWN_ISSUE_TESTS = frozenset({"test_expected_outcome", "test_never_closer_than_d_min"})
+"""The tests a scenario's `expect.known_issue` is about: its expectations and D_min. The
+others (X_d's speed) must hold for it as for every scenario."""
+
+
 @pytest.fixture(autouse=True)
 def _known_issue(request: pytest.FixtureRequest) -> None:
     """A scenario that reproduces an open defect (`expect.known_issue`) is an expected
-    failure, not a skip: it still runs, and passes loudly (XPASS) once fixed."""
-    if "flown" not in request.fixturenames:
+    failure in the tests that defect is about, not a skip: they still run, and pass loudly
+    (XPASS) once it is fixed."""
+    if "flown" not in request.fixturenames or request.node.originalname not in KNOWN_ISSUE_TESTS:
         return
     scenario = load_scenario(request.node.callspec.params["flown"])
     if scenario.expect.known_issue:

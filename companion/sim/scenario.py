@@ -43,8 +43,8 @@ class Expectation(BaseModel):
     (max lateral deviation below max_lateral_deviation_over_m).
     max_replans: at most this many re-plans (cycles that took a new path) in the flight.
     known_issue: set when the scenario reproduces a defect not fixed yet: the expectations
-    are what must hold once it is; tests/test_scenarios.py reports the scenario as an
-    expected failure with this text (and as XPASS the day it holds).
+    are what must hold once it is; tests/test_scenarios.py reports the scenario's
+    expectations and D_min as expected failures with this text (XPASS the day they hold).
     """
 
     model_config = ConfigDict(extra="forbid", frozen=True)
